@@ -1,0 +1,43 @@
+"""dolfinx_lopinf: structure-preserving, data-driven reduced-order models on DOLFINx.
+
+Pipeline (each stage a plain object, usable alone):
+
+    LagrangianSystem -> run (FOM) -> Snapshots -> pod (Basis) -> ddt.derivatives
+      -> infer_mechanical (L-OpInf) -> LagrangianROM.simulate -> Basis.reconstruct
+
+The numpy core (``ddt``, ``basis``, ``inference``, ``rom``, ``metrics``, ``snapshots``)
+imports without DOLFINx; the FOM layer (``LagrangianSystem``, ``MidpointIntegrator``,
+``run``, ``galerkin_rom``) is loaded on first use.
+"""
+
+from .basis import Basis, pod
+from .ddt import derivatives
+from .inference import MechanicalOperators, infer_mechanical, infer_opinf, infer_output
+from .metrics import energy_error, relative_error
+from .rom import LagrangianROM, Trajectory
+from .snapshots import Snapshots
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "LagrangianSystem": "lagrangian",
+    "MidpointIntegrator": "integrators",
+    "StepFailed": "integrators",
+    "run": "fom",
+    "StateMap": "fom",
+    "point_output_matrix": "fom",
+    "galerkin_rom": "intrusive",
+}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["Basis", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+           "derivatives", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
+           "pod", "relative_error", *_LAZY]

@@ -1,0 +1,94 @@
+"""Finite-difference time derivatives of snapshot data (METHOD.md section 3).
+
+Eighth-order central differences on a uniform grid, time along the last axis:
+
+    d1_k = [ 4/5 (q_{k+1}-q_{k-1}) - 1/5 (q_{k+2}-q_{k-2})
+             + 4/105 (q_{k+3}-q_{k-3}) - 1/280 (q_{k+4}-q_{k-4}) ] / dt
+    d2_k = [ -205/72 q_k + 8/5 (q_{k+1}+q_{k-1}) - 1/5 (q_{k+2}+q_{k-2})
+             + 8/315 (q_{k+3}+q_{k-3}) - 1/560 (q_{k+4}+q_{k-4}) ] / dt^2
+
+The stencil needs four neighbours on each side, so the derivatives exist at the interior
+columns 4 .. K-5 only; :func:`derivatives` returns the trimmed states alongside them so all
+three arrays line up column by column.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._checks import check_finite, check_uniform_times
+
+#: Half-width of the central stencils.
+HALF_WIDTH = 4
+_D1 = np.array([4 / 5, -1 / 5, 4 / 105, -1 / 280])  # antisymmetric weights for offsets 1..4
+_D2_CENTER = -205 / 72
+_D2 = np.array([8 / 5, -1 / 5, 8 / 315, -1 / 560])  # symmetric weights for offsets 1..4
+
+
+def _check(states: np.ndarray, dt: float) -> np.ndarray:
+    states = np.asarray(states, dtype=float)
+    if states.ndim not in (1, 2):
+        raise ValueError(f"states must be (r, K) or (K,), got shape {states.shape}")
+    n_times = states.shape[-1]
+    if n_times < 2 * HALF_WIDTH + 1:
+        raise ValueError(
+            f"the 8th-order central difference needs at least {2 * HALF_WIDTH + 1} time "
+            f"samples, got {n_times}; record a longer window or more often"
+        )
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive finite number, got {dt!r}")
+    check_finite(states, "states")
+    return states
+
+
+def first_derivative(states: np.ndarray, dt: float) -> np.ndarray:
+    """Eighth-order central first derivative.
+
+    Args:
+        states: (r, K) or (K,) samples at uniform spacing ``dt``.
+        dt: sample spacing.
+
+    Returns:
+        (r, K-8) derivative at the interior columns 4 .. K-5.
+    """
+    q = _check(states, dt)
+    K, h = q.shape[-1], HALF_WIDTH
+    out = np.zeros(q.shape[:-1] + (K - 2 * h,))
+    for j, w in enumerate(_D1, start=1):
+        out += w * (q[..., h + j : K - h + j] - q[..., h - j : K - h - j])
+    return out / dt
+
+
+def second_derivative(states: np.ndarray, dt: float) -> np.ndarray:
+    """Eighth-order central second derivative; shapes as in :func:`first_derivative`."""
+    q = _check(states, dt)
+    K, h = q.shape[-1], HALF_WIDTH
+    out = _D2_CENTER * q[..., h : K - h]
+    for j, w in enumerate(_D2, start=1):
+        out = out + w * (q[..., h + j : K - h + j] + q[..., h - j : K - h - j])
+    return out / dt**2
+
+
+def derivatives(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """States and their first and second time derivatives on a common (trimmed) grid.
+
+    Args:
+        states: (r, K) reduced states Qh at ``times``.
+        times: (K,) uniformly spaced sample times.
+
+    Returns:
+        ``(Qh, dQh, ddQh)``, each (r, K-8): columns 4 .. K-5 of the input and their
+        derivatives.
+
+    Example:
+        >>> t = np.linspace(0, 1, 101); Q = np.sin(t)[None]
+        >>> Qh, dQh, ddQh = derivatives(Q, t)
+        >>> bool(np.allclose(ddQh, -Qh, atol=1e-9))
+        True
+    """
+    dt = check_uniform_times(times)
+    q = _check(states, dt)
+    if q.shape[-1] != len(times):
+        raise ValueError(f"states have {q.shape[-1]} columns but times has {len(times)} entries")
+    h = HALF_WIDTH
+    return q[..., h:-h], first_derivative(q, dt), second_derivative(q, dt)

@@ -1,0 +1,135 @@
+"""Figures: pyvista off-screen field renders and matplotlib curves.
+
+pyvista and matplotlib are imported lazily, so the numpy core never needs them.
+Every function writes one PNG and returns its path.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def _pyvista():
+    try:
+        import pyvista
+    except ImportError as exc:  # pragma: no cover
+        raise ImportError("rendering needs pyvista: pip install pyvista") from exc
+    pyvista.OFF_SCREEN = True
+    return pyvista
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def beam_shapes(path, x: np.ndarray, shapes: dict, times: list, *, title: str = "") -> Path:
+    """Render 1D beam deflections as 3D tubes (pyvista, off-screen), one panel per time.
+
+    Args:
+        x: (n,) node coordinates.
+        shapes: label -> (n, len(times)) deflections; the first entry is drawn as a thick
+            grey tube (the reference), the others as thin coloured lines on top.
+        times: the time of each column.
+    """
+    pv = _pyvista()
+    colors = ["silver", "crimson", "royalblue", "darkorange"]
+    reference = next(iter(shapes.values()))
+    amplitude = max(np.abs(s).max() for s in shapes.values())
+    scale = 0.1 * (x[-1] - x[0]) / amplitude  # largest deflection = a tenth of the span
+    n_panels = len(times)
+    plotter = pv.Plotter(shape=(n_panels, 1), off_screen=True, window_size=(1100, 260 * n_panels),
+                         border=False)
+    for j, t in enumerate(times):
+        plotter.subplot(j, 0)
+        lines = [f"t = {t:.3f} s"]
+        for i, (label, s) in enumerate(shapes.items()):
+            # later entries sit slightly towards the camera so they are drawn on top
+            pts = np.column_stack([x, scale * s[:, j], np.full_like(x, 0.05 * i)])
+            line = pv.lines_from_points(pts)
+            if i == 0:
+                plotter.add_mesh(line.tube(radius=0.008 * (x[-1] - x[0])), color=colors[0])
+            elif i == 1:
+                plotter.add_mesh(line, color=colors[i], line_width=3)
+            else:
+                plotter.add_mesh(pv.PolyData(pts[::6]), color=colors[i % len(colors)],
+                                 point_size=9, render_points_as_spheres=True)
+            if i:
+                err = np.linalg.norm(s[:, j] - reference[:, j]) / np.linalg.norm(reference[:, j])
+                lines.append(f"{label}: rel. error {err:.1e}")
+        plotter.add_mesh(pv.Line((x[0], 0, -0.1), (x[-1], 0, -0.1)), color="black", line_width=1)
+        plotter.add_text("\n".join(lines), font_size=9, position="upper_left")
+        if j == 0:
+            legend = [[label, colors[i % len(colors)]] for i, label in enumerate(shapes)]
+            plotter.add_legend(legend, bcolor="white", face="circle", size=(0.22, 0.3),
+                               loc="lower right")
+        plotter.view_xy()
+        plotter.camera.focal_point = (0.5 * (x[0] + x[-1]), 0.0, 0.0)
+        plotter.camera.position = (0.5 * (x[0] + x[-1]), 0.0, 3.0)
+        plotter.camera.parallel_projection = True
+        plotter.camera.parallel_scale = 0.15 * (x[-1] - x[0])
+    if title:
+        plotter.subplot(n_panels - 1, 0)
+        plotter.add_text(title, font_size=8, position="lower_right")
+    path = Path(path)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path
+
+
+def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
+    """Relative state error (train solid, test dashed) against r for every method, with the
+    test-window projection error as the floor."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    styles = {"lopinf": ("L-OpInf", "C0"), "opinf": ("standard OpInf", "C3"), "intrusive": ("intrusive", "C2")}
+    for method, (label, color) in styles.items():
+        sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
+        if not sel:
+            continue
+        rs = [r["r"] for r in sel]
+        ax.semilogy(rs, [min(r["train_error"], 1e3) for r in sel], "o-", color=color, label=f"{label} train")
+        ax.semilogy(rs, [min(r["test_error"], 1e3) for r in sel], "s--", color=color, label=f"{label} test")
+    sel = sorted((r for r in rows if r["method"] == "lopinf"), key=lambda r: r["r"])
+    ax.semilogy([r["r"] for r in sel], [r["projection_error_test"] for r in sel], "k:", label="projection (test)")
+    ax.set_xlabel("reduced dimension r")
+    ax.set_ylabel("relative state error")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
+
+
+def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
+           logy: bool = False, vline: float | None = None, xlabel: str = "t [s]") -> Path:
+    """Time series (label -> values) on one axis; ``t`` may be one array or label -> array."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7.0, 3.8))
+    for i, (label, values) in enumerate(series.items()):
+        tt = t[label] if isinstance(t, dict) else t
+        values = np.asarray(values, dtype=float)
+        if logy:
+            values = np.where(values > 0, values, np.nan)
+        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=f"C{[7, 0, 3, 2, 1][i % 5]}")
+    if logy:
+        ax.set_yscale("log")
+    if vline is not None:
+        ax.axvline(vline, color="k", ls=":", lw=1, label="end of training")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
