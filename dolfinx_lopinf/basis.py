@@ -2,6 +2,11 @@
 
 POD: V_r = the r leading left singular vectors of the snapshot matrix Q (n, K), so
 V_r^T V_r = I and ||Q - V_r V_r^T Q||_F^2 = sum_{i>r} sigma_i^2 is minimal.
+Weighted (e.g. mass-orthonormal) POD: with an SPD weight W = R^T R (R upper Cholesky
+factor), V = R^{-1} U_r where U_r are the leading left singular vectors of R Q, so
+V^T W V = I and projection is qh = V^T W q. With W = M (the FOM mass matrix) the reduced
+mass is exactly I - what L-OpInf assumes - at the price of using M, which a strict black
+box would not give.
 Block-diagonal POD: for a state made of blocks (beam deflection w and rotation theta),
 V = diag(V_w, V_theta) with each block's own POD, so every reduced coordinate stays in one
 physical block (METHOD.md section 3).
@@ -25,11 +30,13 @@ class Basis:
         singular_values: name -> all singular values of that block's snapshots (for
             energy/decay plots); a plain POD has the single block ``"all"``.
         blocks: name -> (row indices of the full state, column indices of V).
+        weight: (n, n) SPD inner-product matrix W (V^T W V = I), or None for Euclidean.
     """
 
     V: np.ndarray
     singular_values: dict
     blocks: dict
+    weight: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -40,11 +47,11 @@ class Basis:
         return self.V.shape[1]
 
     def project(self, Q: np.ndarray) -> np.ndarray:
-        """Reduced coordinates Qh = V^T Q, (r, K) from (n, K) (or (r,) from (n,))."""
+        """Reduced coordinates Qh = V^T W Q (W = I for Euclidean POD), (r, K) from (n, K)."""
         Q = np.asarray(Q, dtype=float)
         if Q.shape[0] != self.n:
             raise ValueError(f"state has {Q.shape[0]} rows, the basis has n = {self.n}")
-        return self.V.T @ Q
+        return self.V.T @ (Q if self.weight is None else self.weight @ Q)
 
     def reconstruct(self, Qh: np.ndarray, rows=None) -> np.ndarray:
         """Full (or partial) states V[rows] Qh.
@@ -61,9 +68,10 @@ class Basis:
         return V @ Qh
 
     def projection_error(self, Q: np.ndarray) -> float:
-        """||Q - V V^T Q||_F / ||Q||_F: the floor no ROM in this basis can go below."""
+        """||Q - V project(Q)||_F / ||Q||_F: the floor no ROM in this basis can go below
+        (measured in the Euclidean norm of the state, whatever the basis' weight)."""
         Q = np.asarray(Q, dtype=float)
-        return float(np.linalg.norm(Q - self.V @ (self.V.T @ Q)) / np.linalg.norm(Q))
+        return float(np.linalg.norm(Q - self.V @ self.project(Q)) / np.linalg.norm(Q))
 
     def truncate(self, r: int) -> "Basis":
         """The same kind of basis with fewer columns (r split evenly over the blocks)."""
@@ -75,7 +83,7 @@ class Basis:
             cols.extend(bcols[:size])
             new_blocks[name] = (rows, np.arange(start, start + size))
             start += size
-        return Basis(self.V[:, cols], self.singular_values, new_blocks)
+        return Basis(self.V[:, cols], self.singular_values, new_blocks, self.weight)
 
 
 def _split(r: int, names: list) -> list[int]:
@@ -87,7 +95,8 @@ def _split(r: int, names: list) -> list[int]:
     return [r // len(names)] * len(names)
 
 
-def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e-12) -> Basis:
+def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e-12,
+        weight: np.ndarray | None = None) -> Basis:
     """POD basis of Q, block-diagonal when ``blocks`` is given.
 
     Args:
@@ -96,6 +105,8 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
         blocks: optional name -> row indices; rows not in any block get no basis vectors.
         rank_rtol: singular values below ``rank_rtol * sigma_max`` count as zero; asking for
             more vectors than the numerical rank is an error (they would be noise).
+        weight: optional SPD (n, n) inner-product matrix (dense), e.g. the mass matrix in
+            state coordinates: the basis is then W-orthonormal (not with ``blocks``).
 
     Returns:
         A :class:`Basis` with ``V`` (n, r).
@@ -109,6 +120,10 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
     Q = check_matrix(Q, "Q")
     if r < 1:
         raise ValueError(f"r must be >= 1, got {r}")
+    if weight is not None:
+        if blocks:
+            raise ValueError("a weighted POD mixes blocks; pass either blocks or weight")
+        return _weighted_pod(Q, r, np.asarray(weight, dtype=float), rank_rtol)
     blocks = {"all": np.arange(Q.shape[0])} if not blocks else blocks
     sizes = _split(r, list(blocks))
     V = np.zeros((Q.shape[0], r))
@@ -128,3 +143,21 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
         out_blocks[name] = (rows, np.arange(start, start + size))
         start += size
     return Basis(V, singular_values, out_blocks)
+
+
+def _weighted_pod(Q, r, W, rank_rtol):
+    import scipy.linalg
+
+    n = Q.shape[0]
+    if W.shape != (n, n):
+        raise ValueError(f"weight must be ({n}, {n}), got {W.shape}")
+    try:
+        R = scipy.linalg.cholesky(0.5 * (W + W.T), lower=False)
+    except np.linalg.LinAlgError as exc:
+        raise ValueError("the weight matrix is not symmetric positive definite") from exc
+    U, s, _ = np.linalg.svd(R @ Q, full_matrices=False)
+    rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
+    if r > rank:
+        raise ValueError(f"asked for {r} basis vectors but the snapshots have numerical rank {rank}")
+    V = scipy.linalg.solve_triangular(R, U[:, :r], lower=False)
+    return Basis(V, {"all": s}, {"all": (np.arange(n), np.arange(r))}, W)

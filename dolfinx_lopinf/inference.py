@@ -18,8 +18,16 @@ Compression: write Theta = [Kh, Ch, -Bh] (r, p) and D = [Qh; dQh; U] (p, K). The
     G = D D^T = L L^T,  Z = ddQh D^T L^{-T}  (r, p)   (L from a thin QR of D^T),
 
 so after one pass over the data (cost O(K p^2)) the problem no longer depends on K.
-This module solves the compressed problem with cvxpy (Clarabel); the fast structured
-solver is a separate module to come.
+Solvers. Without damping and inputs, the symmetric-only problem min ||K L + Z|| over
+K = K^T has the closed-form solution of the Lyapunov equation
+
+    G K + K G = -(X + X^T),   X = ddQh Qh^T = Z L^T,
+
+solved through the SVD L = U S W^T (so G = U S^2 U^T):  U^T K U = -U^T (X + X^T) U / (s_i^2 + s_j^2).
+If that minimiser already satisfies K >= eps I it *is* the L-OpInf solution (the constraint
+is inactive, KKT holds with zero multiplier). Otherwise - and for damped/forced fits - the
+compressed problem goes to cvxpy (Clarabel); the fast structured constrained solver is a
+separate piece of work.
 
 Standard (second-order) OpInf drops every constraint: Theta = -ddQh D^+ by least squares.
 """
@@ -188,12 +196,101 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         >>> bool(np.allclose(ops.K, np.diag([1.0, 4.0]), atol=1e-5))
         True
     """
-    if solver not in ("auto", "cvxpy"):
-        raise ValueError(f"unknown solver {solver!r}; choose 'auto' or 'cvxpy'")
+    if solver not in ("auto", "cvxpy", "lyapunov", "admm"):
+        raise ValueError(f"unknown solver {solver!r}; choose 'auto', 'lyapunov', 'admm' or 'cvxpy'")
     if not (np.isfinite(eps) and eps >= 0):
         raise ValueError(f"eps must be a finite number >= 0, got {eps}")
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping)
-    return _solve_cvxpy(gram, eps)
+    conservative = not gram.has_damping and gram.m == 0
+    if solver in ("lyapunov", "admm") and not conservative:
+        raise ValueError(f"solver={solver!r} handles the conservative, unforced fit only "
+                         "(damping=False, U=None); use 'cvxpy'")
+    if solver == "cvxpy" or not conservative:
+        return _solve_cvxpy(gram, eps)
+    ops = _solve_lyapunov(gram, eps)
+    if solver == "lyapunov" or (solver == "auto" and ops.certificate["min_eig_K"] >= eps):
+        return ops
+    return _solve_admm(gram, eps, start=ops.K)
+
+
+def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
+    """Symmetric least-squares minimiser: G K + K G = -(X + X^T), via the SVD of L."""
+    t0 = time.perf_counter()
+    U, s, _ = np.linalg.svd(gram.L)
+    X = gram.Z @ gram.L.T
+    rhs = -U.T @ (X + X.T) @ U
+    K = U @ (rhs / (s[:, None] ** 2 + s[None, :] ** 2)) @ U.T
+    K = 0.5 * (K + K.T)
+    seconds = time.perf_counter() - t0
+    cert = _certificate(gram, K, None, None, "lyapunov", "optimal", seconds, eps)
+    # stationarity of the symmetric problem, relative to the size of its terms
+    G = gram.L @ gram.L.T
+    grad = K @ G + G @ K + X + X.T
+    cert["kkt_residual"] = float(np.linalg.norm(grad) / max(np.linalg.norm(X + X.T), 1e-300))
+    if cert["min_eig_K"] < eps:
+        cert["status"] = "infeasible: the symmetric minimiser has min eigenvalue < eps"
+    return MechanicalOperators(K, None, None, cert)
+
+
+def _solve_admm(gram: GramData, eps: float, start: np.ndarray, *, tol: float = 1e-10,
+                max_iter: int = 20000) -> MechanicalOperators:
+    """min ||K L + Z||_F^2 s.t. K = K^T >= eps I by ADMM on K = W, W in the PSD cone.
+
+    K-step: (G + rho/2) K + K (G + rho/2) = rho (W - Y) - (X + X^T), diagonal in the
+    eigenbasis of G = U diag(lambda) U^T; W-step: eigenvalue clipping of K + Y at eps;
+    rho adapted by residual balancing. Returns a KKT certificate: with S = grad f(K) the
+    optimality conditions are S >= 0 (dual feasibility) and <S, K - eps I> = 0.
+    """
+    t0 = time.perf_counter()
+    U, s, _ = np.linalg.svd(gram.L)
+    lam = s**2
+    X = gram.Z @ gram.L.T
+    B = U.T @ (X + X.T) @ U  # in the eigenbasis of G
+    r = gram.r
+
+    def project(A):
+        w, Q = np.linalg.eigh(0.5 * (A + A.T))
+        return (Q * np.maximum(w, eps)) @ Q.T
+
+    Kt = U.T @ start @ U
+    Wt = U.T @ project(start) @ U
+    Yt = np.zeros_like(Kt)
+    rho = float(np.sqrt(lam.max() * max(lam.min(), lam.max() * 1e-16)))
+    denom = lam[:, None] + lam[None, :]
+    it, prim, dual = 0, np.inf, np.inf
+    for it in range(1, max_iter + 1):
+        Kt = (rho * (Wt - Yt) - B) / (denom + rho)
+        W_old = Wt
+        Wt = U.T @ project(U @ (Kt + Yt) @ U.T) @ U
+        Yt += Kt - Wt
+        prim = np.linalg.norm(Kt - Wt) / max(np.linalg.norm(Kt), np.linalg.norm(Wt), 1e-300)
+        dual = np.linalg.norm(Wt - W_old) / max(np.linalg.norm(Yt), 1e-300)
+        if prim < tol and dual < tol:
+            break
+        if it % 10 == 0:  # residual balancing (Boyd et al. 2011, s. 3.4.1)
+            if prim > 10 * dual:
+                rho *= 2.0
+                Yt /= 2.0
+            elif dual > 10 * prim:
+                rho /= 2.0
+                Yt *= 2.0
+    K = U @ Wt @ U.T
+    K = 0.5 * (K + K.T)
+    seconds = time.perf_counter() - t0
+    converged = prim < tol and dual < tol
+    cert = _certificate(gram, K, None, None, "admm", "optimal" if converged else
+                        "not converged", seconds, eps)
+    G = gram.L @ gram.L.T
+    S = K @ G + G @ K + X + X.T  # gradient = the multiplier of K >= eps I at the optimum
+    scale = max(np.linalg.norm(X + X.T), 1e-300)
+    cert.update(iterations=it, primal_residual=float(prim), dual_residual=float(dual),
+                multiplier_min_eig=float(np.linalg.eigvalsh(S).min() / scale),
+                complementarity=float(abs(np.sum(S * (K - eps * np.eye(r)))) / (scale * max(np.linalg.norm(K), 1e-300))))
+    if not converged:
+        warnings.warn(f"ADMM stopped after {it} iterations (primal {prim:.2e}, dual {dual:.2e} "
+                      f"relative residuals); the certificate says how far from optimal it is",
+                      RuntimeWarning, stacklevel=3)
+    return MechanicalOperators(K, None, None, cert)
 
 
 def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:

@@ -39,6 +39,22 @@ def reduced_matrix(A: "PETSc.Mat", V, basis: np.ndarray, state_map: StateMap) ->
     return comm.allreduce(local)
 
 
+def dense_state_matrix(form, V, state_map: StateMap) -> np.ndarray:
+    """A bilinear form as a dense (n, n) matrix in state coordinates, on every rank.
+
+    For small systems (a beam: n = 400) - e.g. the mass matrix as a POD weight. Cost: n
+    matrix-vector products and n^2 memory, so not for 3D meshes.
+    """
+    A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(form))
+    A.assemble()
+    n = len(state_map.order)
+    if n > 20000:
+        raise ValueError(f"n = {n} is too large for a dense state matrix")
+    dense = reduced_matrix(A, V, np.eye(n), state_map)
+    A.destroy()
+    return 0.5 * (dense + dense.T)
+
+
 def galerkin_rom(system: LagrangianSystem, basis: np.ndarray, state_map: StateMap) -> LagrangianROM:
     """Galerkin ROM (Mh, Kh) of a quadratic Lagrangian in a state-coordinate basis (n, r)."""
     if not system.is_quadratic:

@@ -88,14 +88,18 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
     test-window projection error as the floor."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    styles = {"lopinf": ("L-OpInf", "C0"), "opinf": ("standard OpInf", "C3"), "intrusive": ("intrusive", "C2")}
-    for method, (label, color) in styles.items():
+    # distinct markers so coinciding curves stay visible (L-OpInf: large hollow markers)
+    styles = {"intrusive": ("intrusive", "C2", "^", 5, None),
+              "opinf": ("standard OpInf", "C3", "x", 7, None),
+              "lopinf": ("L-OpInf", "C0", "o", 10, "none")}
+    for method, (label, color, marker, size, face) in styles.items():
         sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
         if not sel:
             continue
         rs = [r["r"] for r in sel]
-        ax.semilogy(rs, [min(r["train_error"], 1e3) for r in sel], "o-", color=color, label=f"{label} train")
-        ax.semilogy(rs, [min(r["test_error"], 1e3) for r in sel], "s--", color=color, label=f"{label} test")
+        kw = dict(color=color, marker=marker, markersize=size, markerfacecolor=face)
+        ax.semilogy(rs, [min(r["train_error"], 1e3) for r in sel], "-", label=f"{label} train", **kw)
+        ax.semilogy(rs, [min(r["test_error"], 1e3) for r in sel], "--", label=f"{label} test", **kw)
     sel = sorted((r for r in rows if r["method"] == "lopinf"), key=lambda r: r["r"])
     ax.semilogy([r["r"] for r in sel], [r["projection_error_test"] for r in sel], "k:", label="projection (test)")
     ax.set_xlabel("reduced dimension r")
@@ -110,8 +114,11 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
 
 
 def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
-           logy: bool = False, vline: float | None = None, xlabel: str = "t [s]") -> Path:
-    """Time series (label -> values) on one axis; ``t`` may be one array or label -> array."""
+           logy: bool = False, vline: float | None = None, xlabel: str = "t [s]",
+           colors: list | None = None) -> Path:
+    """Time series (label -> values) on one axis; ``t`` may be one array or label -> array.
+    The first series is drawn thicker (the reference); ``colors`` overrides the palette."""
+    colors = colors or ["C7", "C0", "C3", "C2", "C1"]
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 3.8))
     for i, (label, values) in enumerate(series.items()):
@@ -119,7 +126,7 @@ def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str 
         values = np.asarray(values, dtype=float)
         if logy:
             values = np.where(values > 0, values, np.nan)
-        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=f"C{[7, 0, 3, 2, 1][i % 5]}")
+        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=colors[i % len(colors)])
     if logy:
         ax.set_yscale("log")
     if vline is not None:

@@ -79,7 +79,7 @@ def _hermite_nodes(V):
     tdim = msh.topology.dim
     n_cells = msh.topology.index_map(tdim).size_local + msh.topology.index_map(tdim).num_ghosts
     x = msh.geometry.x[:, 0]
-    geo = msh.geometry.dofmap
+    geo = msh.geometry.dofmaps[0]
     value, slope, xs, jac = {}, {}, {}, {}
     for c in range(n_cells):
         dofs = V.dofmap.cell_dofs(c)

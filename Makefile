@@ -1,0 +1,39 @@
+# Two commands (see README): `make demo` runs the beam scene, `make test` runs the tests.
+# Both create .venv on first use with a Python >= 3.12 (needed by the DOLFINx wheel).
+VENV := .venv
+PY := $(VENV)/bin/python
+OUT ?= results
+
+# First interpreter >= 3.12 among the usual names (pyenv installs included).
+FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
+	$$HOME/.pyenv/versions/3.1[2-9]*/bin/python3 /usr/local/bin/python3.1[2-9] /usr/bin/python3.1[2-9]; do \
+	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
+	  then echo $$c; break; fi; done
+
+.PHONY: demo demo-quick test test-fast venv clean
+
+$(VENV)/.installed: pyproject.toml
+	@py=$$($(FIND_PYTHON)); \
+	if [ -z "$$py" ]; then echo "error: no Python >= 3.12 found (DOLFINx wheel needs it); set PATH" >&2; exit 1; fi; \
+	echo "creating $(VENV) with $$py"; \
+	$$py -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dolfinx,test]'
+	@touch $@
+
+venv: $(VENV)/.installed
+
+demo: venv
+	$(PY) demos/beam.py --out $(OUT)/beam
+
+demo-quick: venv
+	$(PY) demos/beam.py --quick --out $(OUT)/beam-quick
+
+test: venv
+	$(PY) -m pytest -q
+
+test-fast: venv
+	$(PY) -m pytest -q -m "not slow and not mpi"
+
+clean:
+	rm -rf $(VENV) $(OUT) .pytest_cache
