@@ -131,7 +131,7 @@ def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
             f"(condition number {cond:.3g}); the operators are not determined by the data - "
             "lower r, record a richer trajectory or drop a block"
         )
-    if cond > 1e10:
+    if cond > 1e13:
         warnings.warn(
             f"the data matrix [Qh; dQh; U] is ill-conditioned (condition number {cond:.3g}); the "
             "fitted operators may be sensitive to noise - consider a smaller r", RuntimeWarning,
