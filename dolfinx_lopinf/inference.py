@@ -18,16 +18,16 @@ Compression: write Theta = [Kh, Ch, -Bh] (r, p) and D = [Qh; dQh; U] (p, K). The
     G = D D^T = L L^T,  Z = ddQh D^T L^{-T}  (r, p)   (L from a thin QR of D^T),
 
 so after one pass over the data (cost O(K p^2)) the problem no longer depends on K.
-Solvers. Without damping and inputs, the symmetric-only problem min ||K L + Z|| over
-K = K^T has the closed-form solution of the Lyapunov equation
+Solvers (:mod:`dolfinx_lopinf.lsq`). Without damping and inputs, the symmetric-only
+problem has the closed-form Lyapunov solution G K + K G = -(X + X^T), X = ddQh Qh^T; if that
+minimiser already satisfies K >= eps I it *is* the L-OpInf solution (KKT holds with zero
+multiplier). Otherwise, and for damped/forced fits, an ADMM on the compressed problem with
+eigenvalue-clipping projections, certified by its KKT residuals. ``solver="cvxpy"``
+(Clarabel on the compressed problem) is the reference.
 
-    G K + K G = -(X + X^T),   X = ddQh Qh^T = Z L^T,
+Nonlinear-wave ROM (gray box):  qh_tt = Kh qh - Fh,  Fh = V^T f_nl(V qh), Kh = Kh^T:
 
-solved through the SVD L = U S W^T (so G = U S^2 U^T):  U^T K U = -U^T (X + X^T) U / (s_i^2 + s_j^2).
-If that minimiser already satisfies K >= eps I it *is* the L-OpInf solution (the constraint
-is inactive, KKT holds with zero multiplier). Otherwise - and for damped/forced fits - the
-compressed problem goes to cvxpy (Clarabel); the fast structured constrained solver is a
-separate piece of work.
+    min ||ddQh + Fh - Kh Qh||_F   ->   G K + K G = T Qh^T + Qh T^T,  T = ddQh + Fh.
 
 Standard (second-order) OpInf drops every constraint: Theta = -ddQh D^+ by least squares.
 """
@@ -39,8 +39,8 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
+from . import lsq
 from ._checks import check_matrix
 
 
@@ -202,95 +202,82 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise ValueError(f"eps must be a finite number >= 0, got {eps}")
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping)
     conservative = not gram.has_damping and gram.m == 0
-    if solver in ("lyapunov", "admm") and not conservative:
-        raise ValueError(f"solver={solver!r} handles the conservative, unforced fit only "
-                         "(damping=False, U=None); use 'cvxpy'")
-    if solver == "cvxpy" or not conservative:
+    if solver == "lyapunov" and not conservative:
+        raise ValueError("solver='lyapunov' handles the conservative, unforced fit only "
+                         "(damping=False, U=None); use 'auto' (ADMM) or 'cvxpy'")
+    if solver == "cvxpy":
         return _solve_cvxpy(gram, eps)
-    ops = _solve_lyapunov(gram, eps)
-    if solver == "lyapunov" or (solver == "auto" and ops.certificate["min_eig_K"] >= eps):
-        return ops
-    return _solve_admm(gram, eps, start=ops.K)
+    if conservative and solver in ("auto", "lyapunov"):
+        ops = _solve_lyapunov(gram, eps)
+        if solver == "lyapunov" or ops.certificate["min_eig_K"] >= eps:
+            return ops
+    return _solve_constrained(gram, eps)
 
 
 def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
     """Symmetric least-squares minimiser: G K + K G = -(X + X^T), via the SVD of L."""
     t0 = time.perf_counter()
-    U, s, _ = np.linalg.svd(gram.L)
-    X = gram.Z @ gram.L.T
-    rhs = -U.T @ (X + X.T) @ U
-    K = U @ (rhs / (s[:, None] ** 2 + s[None, :] ** 2)) @ U.T
-    K = 0.5 * (K + K.T)
+    K = lsq.solve_symmetric(gram.L, gram.Z)
     seconds = time.perf_counter() - t0
     cert = _certificate(gram, K, None, None, "lyapunov", "optimal", seconds, eps)
-    # stationarity of the symmetric problem, relative to the size of its terms
+    cert.update(lsq.kkt(gram.L, gram.Z, K, [], eps))  # unconstrained: stationarity only
     G = gram.L @ gram.L.T
+    X = gram.Z @ gram.L.T
     grad = K @ G + G @ K + X + X.T
-    cert["kkt_residual"] = float(np.linalg.norm(grad) / max(np.linalg.norm(X + X.T), 1e-300))
+    cert["stationarity"] = float(np.linalg.norm(grad) / max(np.linalg.norm(2 * X), 1e-300))
     if cert["min_eig_K"] < eps:
         cert["status"] = "infeasible: the symmetric minimiser has min eigenvalue < eps"
     return MechanicalOperators(K, None, None, cert)
 
 
-def _solve_admm(gram: GramData, eps: float, start: np.ndarray, *, tol: float = 1e-10,
-                max_iter: int = 20000) -> MechanicalOperators:
-    """min ||K L + Z||_F^2 s.t. K = K^T >= eps I by ADMM on K = W, W in the PSD cone.
-
-    K-step: (G + rho/2) K + K (G + rho/2) = rho (W - Y) - (X + X^T), diagonal in the
-    eigenbasis of G = U diag(lambda) U^T; W-step: eigenvalue clipping of K + Y at eps;
-    rho adapted by residual balancing. Returns a KKT certificate: with S = grad f(K) the
-    optimality conditions are S >= 0 (dual feasibility) and <S, K - eps I> = 0.
-    """
+def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
+    """PSD-constrained fit: free (input) columns minimised out exactly, then the symmetric
+    blocks: K alone by Lyapunov/eigenbasis ADMM, (K, C) by symmetric least squares and, when
+    that minimiser is not >= eps I, the interior point method."""
+    r, p = gram.r, gram.L.shape[0]
     t0 = time.perf_counter()
-    U, s, _ = np.linalg.svd(gram.L)
-    lam = s**2
-    X = gram.Z @ gram.L.T
-    B = U.T @ (X + X.T) @ U  # in the eigenbasis of G
-    r = gram.r
-
-    def project(A):
-        w, Q = np.linalg.eigh(0.5 * (A + A.T))
-        return (Q * np.maximum(w, eps)) @ Q.T
-
-    Kt = U.T @ start @ U
-    Wt = U.T @ project(start) @ U
-    Yt = np.zeros_like(Kt)
-    rho = float(np.sqrt(lam.max() * max(lam.min(), lam.max() * 1e-16)))
-    denom = lam[:, None] + lam[None, :]
-    it, prim, dual = 0, np.inf, np.inf
-    for it in range(1, max_iter + 1):
-        Kt = (rho * (Wt - Yt) - B) / (denom + rho)
-        W_old = Wt
-        Wt = U.T @ project(U @ (Kt + Yt) @ U.T) @ U
-        Yt += Kt - Wt
-        prim = np.linalg.norm(Kt - Wt) / max(np.linalg.norm(Kt), np.linalg.norm(Wt), 1e-300)
-        dual = np.linalg.norm(Wt - W_old) / max(np.linalg.norm(Yt), 1e-300)
-        if prim < tol and dual < tol:
-            break
-        if it % 10 == 0:  # residual balancing (Boyd et al. 2011, s. 3.4.1)
-            if prim > 10 * dual:
-                rho *= 2.0
-                Yt /= 2.0
-            elif dual > 10 * prim:
-                rho /= 2.0
-                Yt *= 2.0
-    K = U @ Wt @ U.T
+    free = np.zeros(p, dtype=bool)
+    free[p - gram.m:] = True
+    if gram.m:
+        L_S, Z_S, recover = lsq.eliminate_free(gram.L, gram.Z, free)
+    else:
+        L_S, Z_S, recover = gram.L, gram.Z, None
+    solver = "admm"
+    if gram.has_damping:
+        # symmetric minimiser first: if it is >= eps I it is the answer (KKT, zero multiplier)
+        theta_S = lsq.solve_symmetric_blocks(L_S, Z_S, 2)
+        mins = [np.linalg.eigvalsh(theta_S[:, b]).min() for b in (slice(0, r), slice(r, 2 * r))]
+        solver = "symmetric-lsq"
+        info = {"iterations": 0, "converged": True, "seconds": 0.0}
+        if min(mins) < eps:
+            theta_S, info = lsq.solve_ipm(L_S, Z_S, 2, eps)
+            solver = "ipm"
+    elif gram.m:
+        theta_S = lsq.solve_symmetric(L_S, Z_S)
+        solver, info = "lyapunov", {"iterations": 0, "converged": True, "seconds": 0.0}
+        if np.linalg.eigvalsh(theta_S).min() < eps:
+            theta_S, info = lsq.solve_psd_single(L_S, Z_S, eps)
+            solver = "admm"
+    else:
+        theta_S, info = lsq.solve_psd_single(L_S, Z_S, eps)
+    theta = np.empty((r, p))
+    theta[:, ~free] = theta_S
+    if gram.m:
+        theta[:, free] = recover(theta_S)
+    K, C, B = _split_theta(theta, r, gram.m, gram.has_damping)
     K = 0.5 * (K + K.T)
-    seconds = time.perf_counter() - t0
-    converged = prim < tol and dual < tol
-    cert = _certificate(gram, K, None, None, "admm", "optimal" if converged else
-                        "not converged", seconds, eps)
-    G = gram.L @ gram.L.T
-    S = K @ G + G @ K + X + X.T  # gradient = the multiplier of K >= eps I at the optimum
-    scale = max(np.linalg.norm(X + X.T), 1e-300)
-    cert.update(iterations=it, primal_residual=float(prim), dual_residual=float(dual),
-                multiplier_min_eig=float(np.linalg.eigvalsh(S).min() / scale),
-                complementarity=float(abs(np.sum(S * (K - eps * np.eye(r)))) / (scale * max(np.linalg.norm(K), 1e-300))))
-    if not converged:
-        warnings.warn(f"ADMM stopped after {it} iterations (primal {prim:.2e}, dual {dual:.2e} "
-                      f"relative residuals); the certificate says how far from optimal it is",
-                      RuntimeWarning, stacklevel=3)
-    return MechanicalOperators(K, None, None, cert)
+    C = None if C is None else 0.5 * (C + C.T)
+    blocks = [slice(0, r)] + ([slice(r, 2 * r)] if gram.has_damping else [])
+    cert = _certificate(gram, K, C, B, solver, "optimal" if info["converged"] else
+                        "not converged", time.perf_counter() - t0, eps)
+    cert.update({k: v for k, v in info.items() if k != "seconds"})
+    cert.update(lsq.kkt(gram.L, gram.Z, np.hstack([K] + ([C] if C is not None else [])
+                                                   + ([-B] if B is not None else [])), blocks, eps))
+    if not info["converged"]:
+        warnings.warn(f"{solver} stopped after {info['iterations']} iterations without meeting "
+                      "its tolerance; see the certificate's KKT residuals", RuntimeWarning,
+                      stacklevel=3)
+    return MechanicalOperators(K, C, B, cert)
 
 
 def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
@@ -343,6 +330,28 @@ def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True) -> MechanicalOpe
     K, C, B = _split_theta(theta, r, m, damping)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping)
     return MechanicalOperators(K, C, B, _certificate(gram, K, C, B, "lstsq", "optimal", seconds, None))
+
+
+def infer_wave(Qh, ddQh, Fh) -> MechanicalOperators:
+    """Symmetric Kh of the gray-box wave ROM qh_tt = Kh qh - Fh (METHOD.md section 4).
+
+    Args:
+        Qh, ddQh, Fh: (r, K) reduced states, their second derivatives and the reduced
+            nonlinear term V^T f_nl(V qh) on the same grid.
+
+    Returns:
+        :class:`MechanicalOperators` with ``K`` = Kh (symmetric, unique when Qh has full
+        rank) and a certificate (stationarity of the Lyapunov equation).
+    """
+    Qh = check_matrix(Qh, "Qh")
+    r, K = Qh.shape
+    Fh = check_matrix(Fh, "Fh", rows=r, cols=K)
+    # qh_tt = Kh qh - Fh  <=>  ddQh + Fh + (-Kh) Qh = 0: the mechanical form with K -> -Kh
+    gram = gram_data(Qh, None, check_matrix(ddQh, "ddQh", rows=r, cols=K) + Fh, damping=False)
+    ops = _solve_lyapunov(gram, -np.inf)
+    Kh = -ops.K
+    cert = dict(ops.certificate, min_eig_K=float(np.linalg.eigvalsh(Kh).min()), status="optimal")
+    return MechanicalOperators(Kh, None, None, cert)
 
 
 def infer_output(Qh, Y) -> np.ndarray:
