@@ -10,11 +10,19 @@ imports without DOLFINx; the FOM layer (``LagrangianSystem``, ``MidpointIntegrat
 ``run``, ``galerkin_rom``) is loaded on first use.
 """
 
+import importlib.util as _ilu
+
+if _ilu.find_spec("dolfinx_solver") is not None:
+    # The PyPI DOLFINx wheel must load its MPI before anything imports dolfinx; doing it here
+    # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
+    import dolfinx_solver  # noqa: F401
+
 from .basis import Basis, pod
 from .ddt import derivatives
-from .inference import MechanicalOperators, infer_mechanical, infer_opinf, infer_output
+from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
+                        infer_wave)
 from .metrics import energy_error, relative_error
-from .rom import LagrangianROM, Trajectory
+from .rom import LagrangianROM, Trajectory, load_rom, save_rom
 from .snapshots import Snapshots
 
 __version__ = "0.1.0"
@@ -27,6 +35,7 @@ _LAZY = {
     "StateMap": "fom",
     "point_output_matrix": "fom",
     "galerkin_rom": "intrusive",
+    "SnapshotRecorder": "recorder",
 }
 
 
@@ -40,4 +49,4 @@ def __getattr__(name):
 
 __all__ = ["Basis", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
-           "pod", "relative_error", *_LAZY]
+           "infer_wave", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

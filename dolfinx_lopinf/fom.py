@@ -95,19 +95,27 @@ def output_matrix_in_state(V, E_local: np.ndarray, state_map: StateMap) -> np.nd
     return E_dofs[:, state_map.order] / state_map.scale
 
 
-def point_output_matrix(V, points: np.ndarray) -> np.ndarray:
-    """(p, n_local) matrix E with y = sum over ranks of E @ q_local (owned + ghost dofs):
-    the values at ``points`` (p, 3) of a scalar FE function; each point is handled by one rank.
+def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> np.ndarray:
+    """(p, n_local) matrix E with y = sum over ranks of E @ u.x.array (owned + ghost dofs):
+    the values at ``points`` (p, 3) of an FE function (one ``component`` of a vector field).
+    Each point is handled by one rank.
 
-    Built from ``Function.eval`` on unit dof vectors, so it is exact for any scalar element.
+    Built from ``Function.eval`` on unit dof vectors, so it is exact for any element.
     """
     msh = V.mesh
     comm = msh.comm
+    bs = V.dofmap.index_map_bs
+    value_size = int(np.prod(V.value_shape)) if len(V.value_shape) else 1
+    if value_size > 1 and component is None:
+        raise ValueError(f"the space has {value_size} components: pass component=0..{value_size - 1}")
+    comp = 0 if component is None else int(component)
+    if not 0 <= comp < value_size:
+        raise ValueError(f"component must be in 0..{value_size - 1}, got {component}")
     points = np.atleast_2d(np.asarray(points, dtype=float))
     tree = dolfinx.geometry.bb_tree(msh, msh.topology.dim)
     candidates = dolfinx.geometry.compute_collisions_points(tree, points)
     colliding = dolfinx.geometry.compute_colliding_cells(msh, candidates, points)
-    n_local = V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts
+    n_local = (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) * bs
     E = np.zeros((len(points), n_local))
     n_owned_cells = msh.topology.index_map(msh.topology.dim).size_local
     found = np.array([comm.rank if len(colliding.links(i)) and colliding.links(i)[0] < n_owned_cells
@@ -120,10 +128,12 @@ def point_output_matrix(V, points: np.ndarray) -> np.ndarray:
         if owner[i] != comm.rank:
             continue
         cell = colliding.links(i)[0]
-        for dof in V.dofmap.cell_dofs(cell):
-            probe.x.array[:] = 0.0
-            probe.x.array[dof] = 1.0
-            E[i, dof] = probe.eval(point, np.array([cell], dtype=np.int32))[0]
+        for block in V.dofmap.cell_dofs(cell):
+            for k in range(bs):
+                dof = block * bs + k
+                probe.x.array[:] = 0.0
+                probe.x.array[dof] = 1.0
+                E[i, dof] = probe.eval(point, np.array([cell], dtype=np.int32))[comp]
     return E
 
 

@@ -270,11 +270,16 @@ def solve_symmetric_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int) -> np.nd
     r = Z.shape[0]
     terms = _vech_terms(r, n_blocks)
     H, h = _quadratic(L @ L.T, Z @ L.T, terms)
+    # Jacobi equilibration: K and C entries multiply data of very different size (Qh, dQh)
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hs = H / np.outer(d, d)
     try:
-        x = -scipy.linalg.solve(H, h, assume_a="sym")
-    except np.linalg.LinAlgError:
-        x = -np.linalg.lstsq(H, h, rcond=None)[0]
-    return _theta_from_x(x, r, n_blocks, terms)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
+            y = -scipy.linalg.solve(Hs, h / d, assume_a="pos")
+    except (np.linalg.LinAlgError, scipy.linalg.LinAlgWarning):
+        y = -np.linalg.lstsq(Hs, h / d, rcond=None)[0]
+    return _theta_from_x(y / d, r, n_blocks, terms)
 
 
 def solve_ipm(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *, gap_tol: float = 1e-10,

@@ -15,13 +15,24 @@ f_d^+- = dt/2 f_h(midpoint, slope, t+dt/2):
     p1 = D2 L_d(q0, q1) + f_d^+   =  Mh (q1-q0)/dt - dt/4 Kh (q0+q1) - Ch (q1-q0)/2 + dt/2 Bh u_mid
 
 For a linear ROM one step is an affine map x1 = G x0 + H u_mid on x = [q; p], formed once.
-Loading and simulating needs numpy only.
+
+Newmark (gamma = 1/2, beta = 1/4, average acceleration; variational too) on x = [q; v],
+with a_k = Mh^{-1} (Bh u_k - Ch v_k - Kh q_k):
+
+    q* = q0 + dt v0 + dt^2/4 a0,   v* = v0 + dt/2 a0
+    (Mh + dt/2 Ch + dt^2/4 Kh) a1 = Bh u1 - Ch v* - Kh q*
+    q1 = q* + dt^2/4 a1,   v1 = v* + dt/2 a1              ->  x1 = G x0 + H0 u0 + H1 u1.
+
+Save/load to one ``.npz`` (operators, scheme, metadata, optionally basis rows); loading and
+simulating needs numpy only.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -46,7 +57,9 @@ class LagrangianROM:
     Attributes:
         K: (r, r) stiffness.  M: (r, r) mass (identity when None).  C: (r, r) damping or None.
         B: (r, m) input operator or None.  E: (p, r) output operator or None.
-        meta: free-form metadata (method, basis size, certificate, ...).
+        scheme: ``"midpoint"`` (inputs at step midpoints) or ``"newmark"`` (inputs at steps);
+            a ROM is integrated with the same scheme as its FOM.
+        meta: free-form, JSON-serialisable metadata (method, basis size, certificate, ...).
     """
 
     K: np.ndarray
@@ -55,8 +68,11 @@ class LagrangianROM:
     B: np.ndarray | None = None
     E: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    scheme: str = "midpoint"
 
     def __post_init__(self):
+        if self.scheme not in ("midpoint", "newmark"):
+            raise ValueError(f"scheme must be 'midpoint' or 'newmark', got {self.scheme!r}")
         K = np.asarray(self.K, dtype=float)
         if K.ndim != 2 or K.shape[0] != K.shape[1]:
             raise ValueError(f"K must be square, got shape {K.shape}")
@@ -72,7 +88,14 @@ class LagrangianROM:
                 object.__setattr__(self, name, value)
         if self.B is not None:
             B = np.asarray(self.B, dtype=float)
+            if B.ndim > 2 or B.shape[0] != r:
+                raise ValueError(f"B must have {r} rows (r, m), got shape {B.shape}")
             object.__setattr__(self, "B", B.reshape(r, -1))
+        if self.E is not None:
+            E = np.atleast_2d(np.asarray(self.E, dtype=float))
+            if E.shape[1] != r:
+                raise ValueError(f"E must have {r} columns (p, r), got shape {E.shape}")
+            object.__setattr__(self, "E", E)
 
     @property
     def r(self) -> int:
@@ -103,14 +126,33 @@ class LagrangianROM:
             H = np.vstack([Hq, Pq1 @ Hq + 0.5 * dt * self.B])
         return G, H
 
+    def newmark_propagator(self, dt: float):
+        """(G, H0, H1): one Newmark step is [q1; v1] = G [q0; v0] + H0 u0 + H1 u1."""
+        r, M, K = self.r, self.mass, self.K
+        C = np.zeros_like(K) if self.C is None else self.C
+        m = 0 if self.B is None else self.B.shape[1]
+        B = np.zeros((r, m)) if self.B is None else self.B
+        A = M + 0.5 * dt * C + 0.25 * dt**2 * K
+        # columns: q0 (r), v0 (r), u0 (m), u1 (m)
+        n_in = 2 * r + 2 * m
+        Iq, Iv = np.eye(r, n_in), np.eye(r, n_in, r)
+        U0 = np.zeros((m, n_in)); U0[:, 2 * r:2 * r + m] = np.eye(m)
+        U1 = np.zeros((m, n_in)); U1[:, 2 * r + m:] = np.eye(m)
+        a0 = np.linalg.solve(M, B @ U0 - C @ Iv - K @ Iq)
+        qs, vs = Iq + dt * Iv + 0.25 * dt**2 * a0, Iv + 0.5 * dt * a0
+        a1 = np.linalg.solve(A, B @ U1 - C @ vs - K @ qs)
+        X1 = np.vstack([qs + 0.25 * dt**2 * a1, vs + 0.5 * dt * a1])
+        return X1[:, :2 * r], X1[:, 2 * r:2 * r + m], X1[:, 2 * r + m:]
+
     def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1) -> Trajectory:
         """Integrate with the midpoint variational integrator.
 
         Args:
             q0, v0: (r,) initial reduced position and velocity.
             dt: time step; n_steps: number of steps; every: keep every ``every``-th step.
-            inputs: for a forced ROM, a callable u(t) -> (m,) or an (m, n_steps) array of
-                inputs at the step midpoints t_k + dt/2.
+            inputs: for a forced ROM, a callable u(t) -> (m,), or an array of inputs: (m,
+                n_steps) at the step midpoints t_k + dt/2 (midpoint) or (m, n_steps + 1) at
+                t_0 .. t_n (Newmark).
 
         Returns:
             :class:`Trajectory` sampled at t = 0, every*dt, ... (velocities v = Mh^{-1} p).
@@ -121,23 +163,31 @@ class LagrangianROM:
             raise ValueError(f"q0 and v0 must have shape ({r},), got {q0.shape} and {v0.shape}")
         if n_steps < 0 or every < 1:
             raise ValueError("n_steps must be >= 0 and every >= 1")
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be positive and finite, got {dt}")
         U = self._input_array(inputs, dt, n_steps)
         t0 = time.perf_counter()
-        G, H = self.propagator(dt)
-        x = np.concatenate([q0, self.mass @ v0])
         n_out = n_steps // every + 1
         X = np.empty((2 * r, n_out))
+        if self.scheme == "midpoint":
+            G, H = self.propagator(dt)
+            x = np.concatenate([q0, self.mass @ v0])
+            forcing = None if H is None else H @ U  # (2r, n_steps), one product up front
+        else:
+            G, H0, H1 = self.newmark_propagator(dt)
+            x = np.concatenate([q0, v0])
+            forcing = None if U is None else H0 @ U[:, :-1] + H1 @ U[:, 1:]
         X[:, 0] = x
         j = 1
         for k in range(n_steps):
             x = G @ x
-            if H is not None:
-                x += H @ U[:, k]
+            if forcing is not None:
+                x += forcing[:, k]
             if (k + 1) % every == 0:
                 X[:, j] = x
                 j += 1
-        Qh, P = X[:r], X[r:]
-        Vh = np.linalg.solve(self.mass, P)
+        Qh = X[:r]
+        Vh = np.linalg.solve(self.mass, X[r:]) if self.scheme == "midpoint" else X[r:]
         seconds = time.perf_counter() - t0
         Y = None if self.E is None else self.E @ Qh
         times = dt * every * np.arange(n_out)
@@ -151,12 +201,50 @@ class LagrangianROM:
         m = self.B.shape[1]
         if inputs is None:
             raise ValueError(f"this ROM is forced (B has {m} columns): pass inputs")
+        n_u = n_steps if self.scheme == "midpoint" else n_steps + 1
         if callable(inputs):
-            t_mid = dt * (np.arange(n_steps) + 0.5)
-            U = np.column_stack([np.atleast_1d(inputs(t)) for t in t_mid]) if n_steps else np.zeros((m, 0))
+            times = dt * (np.arange(n_steps) + 0.5) if self.scheme == "midpoint" else dt * np.arange(n_u)
+            U = np.column_stack([np.atleast_1d(np.asarray(inputs(t), dtype=float)) for t in times]) \
+                if n_u else np.zeros((m, 0))
         else:
             U = np.atleast_2d(np.asarray(inputs, dtype=float))
-        if U.shape != (m, n_steps):
-            raise ValueError(f"inputs must have shape ({m}, {n_steps}) (m, steps), got {U.shape}")
+        if U.shape != (m, n_u):
+            where = "step midpoints" if self.scheme == "midpoint" else "steps t_0 .. t_n"
+            raise ValueError(f"inputs must have shape ({m}, {n_u}) (m inputs at the {where}), "
+                             f"got {U.shape}")
         check_finite(U, "inputs")
         return U
+
+
+def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
+             rows: np.ndarray | None = None) -> Path:
+    """Write a ROM to one ``.npz``: operators, scheme, metadata (JSON) and optionally rows of
+    its basis (e.g. the dofs of an output point, for partial reconstruction).
+
+    Args:
+        basis_rows: (len(rows), r) rows of the basis V to ship with the ROM.
+        rows: their indices in the full state.
+    """
+    path = Path(path)
+    arrays = {"K": rom.K, "scheme": np.array(rom.scheme), "meta": np.array(json.dumps(rom.meta))}
+    for name in ("M", "C", "B", "E"):
+        if getattr(rom, name) is not None:
+            arrays[name] = getattr(rom, name)
+    if basis_rows is not None:
+        basis_rows = np.asarray(basis_rows, dtype=float)
+        if basis_rows.ndim != 2 or basis_rows.shape[1] != rom.r:
+            raise ValueError(f"basis_rows must be (k, {rom.r}), got {basis_rows.shape}")
+        arrays["basis_rows"] = basis_rows
+        arrays["rows"] = np.arange(len(basis_rows)) if rows is None else np.asarray(rows)
+    np.savez(path, **arrays)
+    return path if path.suffix == ".npz" else path.with_suffix(path.suffix + ".npz")
+
+
+def load_rom(path) -> tuple[LagrangianROM, dict]:
+    """Read a ROM written by :func:`save_rom`; returns ``(rom, extras)`` where extras may hold
+    ``basis_rows`` and ``rows``."""
+    with np.load(path, allow_pickle=False) as data:
+        kw = {name: data[name] for name in ("K", "M", "C", "B", "E") if name in data.files}
+        rom = LagrangianROM(**kw, scheme=str(data["scheme"]), meta=json.loads(str(data["meta"])))
+        extras = {k: data[k] for k in ("basis_rows", "rows") if k in data.files}
+    return rom, extras
