@@ -37,9 +37,35 @@ class StateMap:
 
     @classmethod
     def identity(cls, V) -> "StateMap":
+        """Global dof order. Note: DOLFINx numbers dofs per partition, so this order (and
+        thus the snapshot rows) changes with the number of ranks; see :meth:`from_coordinates`."""
         imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
         n = imap.size_global * bs
         return cls(np.arange(n), np.ones(n), {})
+
+    @classmethod
+    def from_coordinates(cls, V) -> "StateMap":
+        """State rows ordered by dof coordinates (x, then y, then z; components of a vector
+        field kept together), so the snapshots are the same for any number of ranks.
+
+        Needs one coordinate per dof block (Lagrange-type elements); raises otherwise.
+        """
+        comm = V.mesh.comm
+        imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+        n_owned = imap.size_local
+        x = V.tabulate_dof_coordinates()[:n_owned]
+        glob = imap.local_to_global(np.arange(n_owned, dtype=np.int32))
+        pieces = comm.allgather((glob, x))
+        G = np.concatenate([g for g, _ in pieces])
+        X = np.vstack([c for _, c in pieces])
+        scale = max(np.abs(X).max(), 1e-300)
+        key = np.round(X / scale, 10)
+        perm = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
+        if len(perm) > 1 and np.any(np.all(np.diff(key[perm], axis=0) == 0, axis=1)):
+            raise ValueError("several dofs share a coordinate (not a Lagrange-type space): pass "
+                             "an explicit StateMap (see dolfinx_lopinf.scenes.beam for Hermite)")
+        order = (G[perm][:, None] * bs + np.arange(bs)[None, :]).ravel()
+        return cls(order, np.ones(len(order)), {})
 
     def to_dofs(self, states: np.ndarray) -> np.ndarray:
         """Global dof vectors (n, K) from states (n, K) (inverse map)."""
@@ -153,7 +179,8 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
             outputs are recorded to t_end.
         output_matrix: (p, n_local) from :func:`point_output_matrix` (or any local linear
             output); y = allreduce(E q_local).
-        state_map: dof -> state coordinates (default: global dof order, scale 1).
+        state_map: dof -> state coordinates (default: ordered by dof coordinates, so the
+            result does not depend on the number of ranks).
         record_velocity: also record velocities (one mass solve per recorded step).
         energy_every: record the FOM energy every that many recorded samples (default: each
             recorded state sample; 0 disables).
@@ -176,7 +203,7 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
     n_state_steps = int(round(state_until / dt))
     V = system.V
     comm = V.mesh.comm
-    state_map = StateMap.identity(V) if state_map is None else state_map
+    state_map = StateMap.from_coordinates(V) if state_map is None else state_map
     stepper = integrator if integrator is not None else MidpointIntegrator(system, dt)
     if abs(stepper.dt - dt) > 1e-15 * dt:
         raise ValueError("the integrator's dt differs from dt")

@@ -24,7 +24,8 @@ class SnapshotRecorder:
 
     Args:
         u: the Function (or its FunctionSpace) whose values are recorded.
-        state_map: dof -> state coordinates (default: global dof order).
+        state_map: dof -> state coordinates (default: ordered by dof coordinates, identical
+            for any number of ranks; Lagrange-type spaces).
         output_matrix: optional (p, n_local) local output matrix, e.g. from
             :func:`dolfinx_lopinf.point_output_matrix`; y = sum over ranks of E u_local.
         blocks: optional name -> state rows (for block-diagonal POD).
@@ -40,7 +41,7 @@ class SnapshotRecorder:
         if not hasattr(V, "dofmap"):
             raise TypeError("SnapshotRecorder needs a dolfinx Function or FunctionSpace")
         self.V = V
-        self.state_map = StateMap.identity(V) if state_map is None else state_map
+        self.state_map = StateMap.from_coordinates(V) if state_map is None else state_map
         if blocks:
             self.state_map = StateMap(self.state_map.order, self.state_map.scale, blocks)
         self.output_matrix = output_matrix

@@ -59,3 +59,40 @@ def test_figures_written(quick_run):
         assert png.exists() and png.stat().st_size > 10_000, name
         with open(png, "rb") as f:
             assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_existing_code_demo_quick(tmp_path):
+    """An ordinary dolfinx cantilever loop + SnapshotRecorder -> forced L-OpInf ROM that
+    predicts the tip displacement for an unseen load."""
+    proc = subprocess.run([sys.executable, str(ROOT / "demos" / "existing_code.py"), "--quick",
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    row = m["roms"][0]
+    assert row["test_output_error"] < 1e-2
+    assert row["min_eig_K"] > 0 and row["min_eig_C"] > 0
+    rom, _ = __import__("dolfinx_lopinf").load_rom(tmp_path / "cantilever_rom.npz")
+    assert rom.scheme == "newmark" and rom.B.shape == (row["r"], 1)
+    assert (tmp_path / "tip_displacement.png").stat().st_size > 10_000
+
+
+def test_recorder_rejects_bad_records():
+    import dolfinx_lopinf as lo
+    from dolfinx_lopinf._dolfinx import MPI, dolfinx
+
+    msh = dolfinx.mesh.create_unit_interval(MPI.COMM_WORLD, 8)
+    V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))
+    u = dolfinx.fem.Function(V)
+    rec = lo.SnapshotRecorder(u)
+    rec.record(0.0, u, inputs=[1.0])
+    rec.record(0.1, u, inputs=[1.0])
+    with pytest.raises(ValueError, match="uniform spacing"):
+        rec.record(0.25, u, inputs=[1.0])
+    with pytest.raises(ValueError, match="increase"):
+        rec.record(0.1, u, inputs=[1.0])
+    with pytest.raises(ValueError, match="inputs had 1 entries"):
+        rec.record(0.2, u, inputs=[1.0, 2.0])
+    u.x.array[2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        rec.record(0.2, u, inputs=[1.0])
+    assert len(rec) == 2

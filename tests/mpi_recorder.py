@@ -1,0 +1,38 @@
+"""A plain dolfinx wave loop (P1 on a box, explicit central differences) recorded with
+SnapshotRecorder; used by test_mpi.py under 1 and 2 ranks."""
+import sys
+
+import numpy as np
+
+import dolfinx_lopinf as lo
+import dolfinx
+import dolfinx.fem.petsc
+import ufl
+from mpi4py import MPI
+from petsc4py import PETSc
+
+out = sys.argv[1]
+msh = dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, 12, 10)
+V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))
+u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+# lumped mass -> explicit update
+ml = dolfinx.fem.petsc.assemble_vector(dolfinx.fem.form(v * ufl.dx))
+K = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(ufl.inner(ufl.grad(u), ufl.grad(v)) * ufl.dx))
+K.assemble()
+ml.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+q, q_old = dolfinx.fem.Function(V), dolfinx.fem.Function(V)
+q.interpolate(lambda x: np.exp(-40 * ((x[0] - 0.4) ** 2 + (x[1] - 0.6) ** 2)))
+q_old.x.array[:] = q.x.array
+E = lo.point_output_matrix(V, np.array([[0.5, 0.5, 0.0]]))
+rec = lo.SnapshotRecorder(q, output_matrix=E)
+dt, kq = 0.01, q.x.petsc_vec.duplicate()
+for n in range(40):
+    rec.record(n * dt, q, inputs=[np.sin(n * dt)])
+    K.mult(q.x.petsc_vec, kq)
+    new = 2 * q.x.petsc_vec.array - q_old.x.petsc_vec.array - dt**2 * kq.array / ml.array
+    q_old.x.petsc_vec.array[:] = q.x.petsc_vec.array
+    q.x.petsc_vec.array[:] = new
+    q.x.scatter_forward(); q_old.x.scatter_forward()
+snaps = rec.snapshots()
+if MPI.COMM_WORLD.rank == 0:
+    np.savez(out, Q=snaps.Q, U=snaps.U, Y=snaps.Y, t=snaps.times)

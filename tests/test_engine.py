@@ -1,0 +1,154 @@
+"""Inference engine: structured solvers agree with the cvxpy reference, certify themselves,
+and ROMs save/load and run with either scheme (numpy + cvxpy only)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf import lsq
+
+
+def _forced_damped_data(r=5, m=2, n=6000, dt=2e-3, noise=0.0, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((r, r))
+    K = A @ A.T / r + 0.5 * np.eye(r)
+    Cm = rng.standard_normal((r, r))
+    C = 0.05 * Cm @ Cm.T / r + 0.01 * np.eye(r)
+    B = rng.standard_normal((r, m))
+    rom = lo.LagrangianROM(K=K, C=C, B=B)
+    freqs = rng.uniform(0.5, 3.0, size=(m, 3))
+
+    def u(t):
+        return np.sin(freqs * t).sum(axis=1)
+
+    tr = rom.simulate(rng.standard_normal(r), rng.standard_normal(r), dt, n, inputs=u)
+    U = np.column_stack([u(t) for t in tr.times])
+    Q = tr.Qh + noise * np.abs(tr.Qh).max() * rng.standard_normal(tr.Qh.shape)
+    Qh, dQh, ddQh = lo.derivatives(Q, tr.times)
+    return (Qh, dQh, ddQh, U[:, 4:-4]), (K, C, B)
+
+
+def _quiet(fn, *args, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fn(*args, **kw)
+
+
+def test_clean_forced_damped_data_recovers_the_operators():
+    data, (K, C, B) = _forced_damped_data()
+    ops = lo.infer_mechanical(*data)
+    assert np.linalg.norm(ops.K - K) / np.linalg.norm(K) < 1e-4
+    assert np.linalg.norm(ops.C - C) / np.linalg.norm(C) < 1e-2
+    assert np.linalg.norm(ops.B - B) / np.linalg.norm(B) < 1e-4
+    assert np.array_equal(ops.K, ops.K.T) and np.array_equal(ops.C, ops.C.T)
+
+
+def test_active_constraints_match_clarabel():
+    """Noisy data: the unconstrained fit is indefinite, so the PSD constraints are active;
+    our interior point solution and Clarabel's reach the same objective."""
+    data, _ = _forced_damped_data(noise=1e-3, seed=3)
+    unconstrained = lo.infer_opinf(*data)
+    assert min(np.linalg.eigvals(unconstrained.K).real.min(),
+               np.linalg.eigvals(unconstrained.C).real.min()) < 0
+    ours = lo.infer_mechanical(*data)
+    ref = _quiet(lo.infer_mechanical, *data, solver="cvxpy")
+    assert ours.certificate["solver"] == "ipm"
+    gap = (ours.certificate["objective"] - ref.certificate["objective"]) / ref.certificate["objective"]
+    assert gap < 1e-6, gap
+    for ops in (ours,):
+        assert ops.certificate["min_eig_K"] >= 1e-8 * (1 - 1e-6)
+        assert ops.certificate["min_eig_C"] >= 1e-8 * (1 - 1e-6)
+    assert ours.certificate["duality_gap"] < 1e-8
+
+
+def test_conservative_admm_certificate_and_lyapunov_path():
+    rng = np.random.default_rng(5)
+    r = 6
+    L = np.tril(rng.standard_normal((r, r))) + 3 * np.eye(r)
+    # a target whose symmetric minimiser is indefinite: K* = -diag(...) mixes signs
+    K_star = np.diag([5.0, 2.0, 1.0, -0.5, -2.0, 0.3])
+    Z = -K_star @ L
+    K, info = lsq.solve_psd_single(L, Z, 1e-8)
+    assert info["converged"]
+    kkt = lsq.kkt(L, Z, K, [slice(0, r)], 1e-8)
+    assert kkt["multiplier_min_eig"] > -1e-7 and kkt["complementarity"] < 1e-6
+    assert np.linalg.eigvalsh(K).min() >= 1e-8 * (1 - 1e-6)
+    # feasible target: Lyapunov solution is exact
+    K2 = lsq.solve_symmetric(L, -np.diag([1.0, 2, 3, 4, 5, 6]) @ L)
+    assert np.allclose(K2, np.diag([1.0, 2, 3, 4, 5, 6]), atol=1e-10)
+
+
+def test_conservative_fit_agrees_with_clarabel_when_constraint_active():
+    rng = np.random.default_rng(2)
+    r, n = 4, 800
+    Qh = rng.standard_normal((r, n))
+    K_true = np.diag([3.0, 1.0, -1.0, 2.0])  # indefinite: the constraint must act
+    ddQh = -K_true @ Qh + 0.01 * rng.standard_normal((r, n))
+    ours = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    ref = _quiet(lo.infer_mechanical, Qh, None, ddQh, damping=False, solver="cvxpy")
+    assert ours.certificate["solver"] == "admm"
+    assert ours.certificate["objective"] <= ref.certificate["objective"] * (1 + 1e-6)
+
+
+def test_infer_wave_recovers_a_symmetric_operator():
+    rng = np.random.default_rng(4)
+    r, n = 5, 500
+    A = rng.standard_normal((r, r))
+    K = -(A @ A.T) / r  # negative semidefinite (a discrete second derivative)
+    Qh = rng.standard_normal((r, n))
+    Fh = np.sin(Qh)
+    ddQh = K @ Qh - Fh
+    ops = lo.infer_wave(Qh, ddQh, Fh)
+    assert np.allclose(ops.K, K, atol=1e-10)
+    assert np.array_equal(ops.K, ops.K.T)
+
+
+def test_rom_save_load_roundtrip_and_newmark(tmp_path):
+    data, (K, C, B) = _forced_damped_data(r=3, m=1)
+    rom = lo.LagrangianROM(K=K, C=C, B=B, E=np.ones((1, 3)), scheme="newmark",
+                           meta={"method": "lopinf"})
+    path = lo.save_rom(tmp_path / "rom.npz", rom, basis_rows=np.eye(3)[:2], rows=[7, 9])
+    loaded, extras = lo.load_rom(path)
+    assert loaded.scheme == "newmark" and loaded.meta == {"method": "lopinf"}
+    assert np.array_equal(extras["rows"], [7, 9])
+    u = lambda t: np.array([np.sin(t)])  # noqa: E731
+    a = rom.simulate(np.ones(3), np.zeros(3), 1e-2, 300, inputs=u)
+    b = loaded.simulate(np.ones(3), np.zeros(3), 1e-2, 300, inputs=u)
+    assert np.array_equal(a.Y, b.Y)
+    with pytest.raises(ValueError, match=r"inputs must have shape \(1, 301\)"):
+        rom.simulate(np.ones(3), np.zeros(3), 1e-2, 300, inputs=np.zeros((2, 301)))
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "newmark"])
+def test_forced_rom_converges_at_second_order(scheme):
+    from scipy.integrate import solve_ivp
+
+    K, C, B = np.diag([1.0, 4.0]), 0.1 * np.eye(2), np.array([[1.0], [0.5]])
+    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme=scheme)
+    u = lambda t: np.array([np.sin(2 * t)])  # noqa: E731
+    rhs = lambda t, y: np.concatenate([y[2:], B @ u(t) - C @ y[2:] - K @ y[:2]])  # noqa: E731
+    ref = solve_ivp(rhs, [0, 4], [1, 0, 0, 0], rtol=1e-12, atol=1e-13).y[:2, -1]
+    errs = [np.abs(rom.simulate(np.array([1.0, 0]), np.zeros(2), dt, int(round(4 / dt)),
+                                inputs=u).Qh[:, -1] - ref).max() for dt in (0.02, 0.01)]
+    assert 3.5 < errs[0] / errs[1] < 4.5
+
+
+def test_bad_inputs_are_named():
+    data, _ = _forced_damped_data(r=3, m=1)
+    Qh, dQh, ddQh, U = data
+    with pytest.raises(ValueError, match="ddQh must have"):
+        lo.infer_mechanical(Qh, dQh, ddQh[:, :-1], U)
+    bad = Qh.copy()
+    bad[1, 5] = np.inf
+    with pytest.raises(ValueError, match="non-finite"):
+        lo.infer_mechanical(bad, dQh, ddQh, U)
+    with pytest.raises(ValueError, match="rank"):
+        lo.infer_mechanical(np.vstack([Qh, Qh[:1]]), np.vstack([dQh, dQh[:1]]),
+                            np.vstack([ddQh, ddQh[:1]]), U)
+    with pytest.raises(ValueError, match="unknown solver"):
+        lo.infer_mechanical(Qh, dQh, ddQh, U, solver="sdpt3")
+    rom = lo.LagrangianROM(K=np.eye(3), B=np.ones((3, 1)))
+    with pytest.raises(ValueError, match="inputs must have shape"):
+        rom.simulate(np.zeros(3), np.zeros(3), 0.1, 10, inputs=np.zeros((2, 10)))
