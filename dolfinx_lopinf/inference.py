@@ -233,7 +233,8 @@ def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
 def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
     """PSD-constrained fit: free (input) columns minimised out exactly, then the symmetric
     blocks: K alone by Lyapunov/eigenbasis ADMM, (K, C) by symmetric least squares and, when
-    that minimiser is not >= eps I, the interior point method."""
+    that minimiser is not >= eps I, ADMM with an exactly symmetric step (interior point
+    method if ADMM does not converge)."""
     r, p = gram.r, gram.L.shape[0]
     t0 = time.perf_counter()
     free = np.zeros(p, dtype=bool)
@@ -250,8 +251,11 @@ def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
         solver = "symmetric-lsq"
         info = {"iterations": 0, "converged": True, "seconds": 0.0}
         if min(mins) < eps:
-            theta_S, info = lsq.solve_ipm(L_S, Z_S, 2, eps)
-            solver = "ipm"
+            theta_S, info = lsq.solve_admm_sym(L_S, Z_S, 2, eps)
+            solver = "admm"
+            if not info["converged"]:  # the interior point method is slower but sure-footed
+                theta_S, info = lsq.solve_ipm(L_S, Z_S, 2, eps)
+                solver = "ipm"
     elif gram.m:
         theta_S = lsq.solve_symmetric(L_S, Z_S)
         solver, info = "lyapunov", {"iterations": 0, "converged": True, "seconds": 0.0}

@@ -1,0 +1,206 @@
+"""Inference benchmark: our structured solvers against cvxpy (Clarabel), side by side.
+
+    python -m dolfinx_lopinf.benchmark [--out FILE.json] [--quick] [--naive-up-to R]
+
+For r in {2, 4, ..., 20} and K in {3000, 6000, 10000} snapshots it times
+
+* ``ours``        - :func:`dolfinx_lopinf.infer_mechanical` / ``infer_wave`` (Gram pass + solve),
+* ``cvxpy_comp``  - cvxpy/Clarabel on the same compressed problem (after our Gram pass),
+* ``cvxpy_naive`` - cvxpy/Clarabel on the raw ||ddQh + K Qh + ...||_F over all K snapshots
+                    (slow: by default only for r <= ``--naive-up-to``),
+
+and reports objective gaps and minimum eigenvalues, on three data sets:
+
+1. ``beam``      - conservative fit (Kh only) on block-POD data of our beam FOM;
+2. ``forced``    - Kh, Ch, Bh on a forced, damped synthetic system with 1e-3 noise, where the
+                   unconstrained fit is indefinite (the PSD constraints are active);
+3. ``wave``      - the symmetric-only wave problem (Kh = Kh^T, qh_tt = Kh qh - Fh).
+
+Times are medians over repeats (``ours``) or single runs (cvxpy). Prints a table, writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import inference, lsq
+from .ddt import derivatives
+from .rom import LagrangianROM
+
+R_VALUES = list(range(2, 21, 2))
+K_VALUES = [3000, 6000, 10000]
+
+
+def _median_time(fn, repeats):
+    times, out = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), out
+
+
+def _cvxpy_compressed(gram, eps, kind):
+    import cvxpy as cp
+
+    r, p = gram.r, gram.L.shape[0]
+    zn = np.linalg.norm(gram.Z)
+    s = zn / max(np.linalg.norm(gram.L), 1e-300)
+    if kind == "wave":
+        K = cp.Variable((r, r), symmetric=True)
+        prob = cp.Problem(cp.Minimize(cp.sum_squares(K @ (gram.L * s / zn) + gram.Z / zn)))
+        prob.solve(solver=cp.CLARABEL)
+        return s * K.value
+    ops = inference._solve_cvxpy(gram, eps)
+    return np.hstack([ops.K] + ([ops.C] if ops.C is not None else [])
+                     + ([-ops.B] if ops.B is not None else []))
+
+
+def _cvxpy_naive(Qh, dQh, ddQh, U, eps, kind):
+    import cvxpy as cp
+
+    r = Qh.shape[0]
+    K = cp.Variable((r, r), symmetric=True)
+    if kind == "wave":
+        expr, cons = ddQh - K @ Qh, []  # ddQh here already holds ddQh + Fh
+    else:
+        expr, cons = ddQh + K @ Qh, [K >> eps * np.eye(r)]
+        if dQh is not None:
+            C = cp.Variable((r, r), symmetric=True)
+            expr, cons = expr + C @ dQh, cons + [C >> eps * np.eye(r)]
+        if U is not None:
+            B = cp.Variable((r, U.shape[0]))
+            expr = expr - B @ U
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(expr)), cons)
+    prob.solve(solver=cp.CLARABEL)
+    return float(prob.value)
+
+
+def _objective(gram, theta):
+    return float(np.sum((theta @ gram.L + gram.Z) ** 2) + gram.target_norm2 - np.sum(gram.Z**2))
+
+
+def beam_data(k_max: int):
+    """Block-POD training data of our beam FOM: (Q (400, k_max+1), times, blocks)."""
+    from . import run
+    from .scenes import beam as scene
+
+    b = scene.build(200)
+    q0, v0 = b.initial_state()
+    snaps, _ = run(b.system, q0, v0, scene.DT, k_max * scene.DT, state_map=b.state_map,
+                   record_velocity=False, energy_every=0, progress=False)
+    return snaps
+
+
+def forced_data(r, n, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((r, r))
+    K = A @ A.T / r + 0.5 * np.eye(r)
+    Cm = rng.standard_normal((r, r))
+    C = 0.05 * Cm @ Cm.T / r + 0.01 * np.eye(r)
+    B = rng.standard_normal((r, 1))
+    freqs = rng.uniform(0.5, 3.0, size=3)
+    u = lambda t: np.array([np.sin(freqs * t).sum()])  # noqa: E731
+    dt = 2e-3
+    tr = LagrangianROM(K=K, C=C, B=B).simulate(rng.standard_normal(r), rng.standard_normal(r),
+                                               dt, n + 7, inputs=u)
+    Q = tr.Qh + 1e-3 * np.abs(tr.Qh).max() * rng.standard_normal(tr.Qh.shape)
+    Qh, dQh, ddQh = derivatives(Q, tr.times)
+    U = np.column_stack([u(t) for t in tr.times])[:, 4:-4]
+    return Qh, dQh, ddQh, U
+
+
+def wave_data(r, n, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((r, r))
+    K = -(A @ A.T) / r
+    t = np.linspace(0, 20, n)
+    Qh = np.vstack([np.sin((i + 1) * 0.7 * t + rng.uniform(0, 6)) for i in range(r)])
+    Fh = np.sin(Qh)
+    ddQh = K @ Qh - Fh + 1e-6 * rng.standard_normal(Qh.shape)
+    return Qh, ddQh, Fh
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="results/benchmark_inference.json")
+    parser.add_argument("--quick", action="store_true", help="r in {4, 20}, K in {3000, 10000}")
+    parser.add_argument("--naive-up-to", type=int, default=8,
+                        help="run the naive cvxpy formulation for r <= this (it is slow)")
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--sets", default="beam,forced,wave")
+    args = parser.parse_args(argv)
+    r_values = [4, 20] if args.quick else R_VALUES
+    k_values = [3000, 10000] if args.quick else K_VALUES
+    eps = 1e-8
+    rows = []
+    sets = args.sets.split(",")
+    beam = beam_data(max(k_values) + 8) if "beam" in sets else None
+    warnings.simplefilter("ignore", RuntimeWarning)
+    print(f"{'set':>6} {'r':>3} {'K':>6} {'ours ms':>9} {'(solve)':>8} {'cvx-comp ms':>11} "
+          f"{'cvx-naive ms':>12} {'speed-up':>8} {'gap vs cvx':>11} {'min eig K':>10} solver")
+    for kind in sets:
+        for r in r_values:
+            for K in k_values:
+                if kind == "beam":
+                    from .basis import pod
+
+                    win = beam.window(0.0, (K + 7) * beam.dt)
+                    basis = pod(win.Q, r, blocks=win.blocks)
+                    Qh, dQh, ddQh = derivatives(basis.project(win.Q), win.times)
+                    dQh, U, damping = None, None, False
+                    fit = lambda: inference.infer_mechanical(Qh, None, ddQh, damping=False, eps=eps)  # noqa: E731
+                elif kind == "forced":
+                    Qh, dQh, ddQh, U = forced_data(r, K)
+                    damping = True
+                    fit = lambda: inference.infer_mechanical(Qh, dQh, ddQh, U, eps=eps)  # noqa: E731
+                else:
+                    Qh, ddQh, Fh = wave_data(r, K)
+                    dQh, U, damping = None, None, False
+                    fit = lambda: inference.infer_wave(Qh, ddQh, Fh)  # noqa: E731
+                t_ours, ops = _median_time(fit, args.repeats)
+                solve_s = ops.certificate.get("seconds", float("nan"))
+                target = ddQh + Fh if kind == "wave" else ddQh
+                gram = inference.gram_data(Qh, dQh, target, U, damping=damping)
+                t0 = time.perf_counter()
+                theta_ref = _cvxpy_compressed(gram, eps, kind)
+                t_comp = time.perf_counter() - t0
+                if kind == "wave":  # min ||(-Kh) Qh + (ddQh + Fh)||: theta = -Kh
+                    obj_ours = _objective(gram, -ops.K)
+                    obj_ref = _objective(gram, theta_ref)
+                else:
+                    obj_ours, obj_ref = ops.certificate["objective"], _objective(gram, theta_ref)
+                t_naive = float("nan")
+                if r <= args.naive_up_to:
+                    t0 = time.perf_counter()
+                    _cvxpy_naive(Qh, dQh, target, U, eps, kind)
+                    t_naive = time.perf_counter() - t0
+                row = {"set": kind, "r": r, "K": K, "ours_seconds": t_ours,
+                       "ours_solve_seconds": solve_s, "cvxpy_compressed_seconds": t_comp,
+                       "cvxpy_naive_seconds": t_naive, "objective_ours": obj_ours,
+                       "objective_cvxpy": obj_ref,
+                       "relative_gap": (obj_ours - obj_ref) / abs(obj_ref),
+                       "min_eig_K": float(np.linalg.eigvalsh(ops.K).min()),
+                       "min_eig_C": ops.certificate.get("min_eig_C"),
+                       "solver": ops.certificate.get("solver"),
+                       "symmetric": bool(np.array_equal(ops.K, ops.K.T))}
+                rows.append(row)
+                print(f"{kind:>6} {r:>3} {K:>6} {t_ours * 1e3:9.2f} {solve_s * 1e3:8.2f} "
+                      f"{t_comp * 1e3:11.1f} {t_naive * 1e3:12.1f} {t_comp / t_ours:8.1f} "
+                      f"{row['relative_gap']:11.2e} {row['min_eig_K']:10.3e} {row['solver']}",
+                      flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"eps": eps, "rows": rows}, indent=1))
+    print(f"wrote {out}")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
