@@ -10,7 +10,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick test test-fast venv clean
+.PHONY: demo demo-quick demo-existing bench test test-fast venv clean
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -28,6 +28,12 @@ demo: venv
 
 demo-quick: venv
 	$(PY) demos/beam.py --quick --out $(OUT)/beam-quick
+
+demo-existing: venv
+	$(PY) demos/existing_code.py --out $(OUT)/existing_code
+
+bench: venv
+	$(PY) -m dolfinx_lopinf.benchmark --out $(OUT)/benchmark_inference.json
 
 test: venv
 	$(PY) -m pytest -q

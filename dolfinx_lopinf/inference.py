@@ -230,6 +230,18 @@ def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
     return MechanicalOperators(K, None, None, cert)
 
 
+def _floor(A: np.ndarray, eps: float) -> np.ndarray:
+    """Symmetrise and make the computed eigenvalues >= eps despite rounding: eigenvalues are
+    only known to ~1e-16 ||A||, so clip at eps + 64 u ||A||_2 when any falls below eps."""
+    A = 0.5 * (A + A.T)
+    w, Q = np.linalg.eigh(A)
+    if w.min() >= eps:
+        return A
+    floor = eps + 64 * np.finfo(float).eps * np.abs(w).max()
+    A = (Q * np.maximum(w, floor)) @ Q.T
+    return 0.5 * (A + A.T)
+
+
 def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
     """PSD-constrained fit: free (input) columns minimised out exactly, then the symmetric
     blocks: K alone by Lyapunov/eigenbasis ADMM, (K, C) by symmetric least squares and, when
@@ -269,8 +281,8 @@ def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
     if gram.m:
         theta[:, free] = recover(theta_S)
     K, C, B = _split_theta(theta, r, gram.m, gram.has_damping)
-    K = 0.5 * (K + K.T)
-    C = None if C is None else 0.5 * (C + C.T)
+    K = _floor(K, eps)
+    C = None if C is None else _floor(C, eps)
     blocks = [slice(0, r)] + ([slice(r, 2 * r)] if gram.has_damping else [])
     cert = _certificate(gram, K, C, B, solver, "optimal" if info["converged"] else
                         "not converged", time.perf_counter() - t0, eps)
