@@ -1,0 +1,146 @@
+"""The numpy core without DOLFINx: finite differences, POD, inference structure, ROM."""
+
+import numpy as np
+import pytest
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf import ddt
+
+
+@pytest.mark.parametrize("which", ["first", "second"])
+def test_eighth_order_differences_converge_at_order_eight(which):
+    errs = []
+    for dt in (0.1, 0.05):
+        t = np.arange(0, 4 + dt / 2, dt)
+        q = np.sin(3 * t)[None]
+        if which == "first":
+            d, exact = ddt.first_derivative(q, dt), 3 * np.cos(3 * t[4:-4])
+        else:
+            d, exact = ddt.second_derivative(q, dt), -9 * np.sin(3 * t[4:-4])
+        errs.append(np.abs(d[0] - exact).max())
+    order = np.log2(errs[0] / errs[1])
+    assert 7.5 < order < 8.7, order
+
+
+def test_derivatives_align_columns_and_reject_bad_grids():
+    t = np.linspace(0, 1, 50)
+    Q = np.vstack([t**2, t**3])
+    Qh, dQh, ddQh = lo.derivatives(Q, t)
+    assert Qh.shape == dQh.shape == ddQh.shape == (2, 42)
+    assert np.allclose(Qh, Q[:, 4:-4])
+    assert np.allclose(ddQh[0], 2.0) and np.allclose(ddQh[1], 6 * t[4:-4])
+    with pytest.raises(ValueError, match="at least 9 time samples"):
+        lo.derivatives(Q[:, :8], t[:8])
+    with pytest.raises(ValueError, match="uniformly spaced"):
+        lo.derivatives(Q, t**2)
+    bad = Q.copy()
+    bad[1, 7] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        lo.derivatives(bad, t)
+
+
+def test_pod_projection_reconstruction_round_trip():
+    rng = np.random.default_rng(0)
+    n, k = 60, 40
+    blocks = {"w": np.arange(30), "theta": np.arange(30, 60)}
+    Q = rng.standard_normal((n, k))
+    basis = lo.pod(Q, 10, blocks=blocks)
+    V = basis.V
+    assert np.allclose(V.T @ V, np.eye(10), atol=1e-12)
+    assert np.all(V[30:, :5] == 0) and np.all(V[:30, 5:] == 0)  # block-diagonal
+    inside = V @ rng.standard_normal((10, 7))  # states in the span round-trip exactly
+    assert np.allclose(basis.reconstruct(basis.project(inside)), inside, atol=1e-12)
+    rows = np.array([3, 17, 44])
+    assert np.allclose(basis.reconstruct(basis.project(Q), rows=rows),
+                       basis.reconstruct(basis.project(Q))[rows])
+    plain = lo.pod(Q, 6)
+    s = plain.singular_values["all"]
+    assert plain.projection_error(Q) == pytest.approx(np.sqrt((s[6:] ** 2).sum() / (s**2).sum()))
+    assert np.allclose(np.abs(lo.pod(Q, 8).truncate(6).V), np.abs(plain.V))
+
+
+def test_weighted_pod_is_weight_orthonormal():
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((20, 20))
+    W = A @ A.T + 20 * np.eye(20)
+    basis = lo.pod(rng.standard_normal((20, 15)), 5, weight=W)
+    assert np.allclose(basis.V.T @ W @ basis.V, np.eye(5), atol=1e-10)
+
+
+def test_pod_errors():
+    Q = np.outer(np.arange(10.0), np.ones(12))  # rank 1
+    with pytest.raises(ValueError, match="numerical rank 1"):
+        lo.pod(Q, 3)
+    with pytest.raises(ValueError, match="multiple of the number of blocks"):
+        lo.pod(np.random.default_rng(0).standard_normal((10, 12)), 3,
+               blocks={"a": np.arange(5), "b": np.arange(5, 10)})
+
+
+def _oscillator_data(K_true, n=2000, dt=2e-3, seed=0):
+    rng = np.random.default_rng(seed)
+    w2, P = np.linalg.eigh(K_true)
+    w = np.sqrt(w2)
+    t = dt * np.arange(n)
+    a, b = rng.standard_normal(len(w)), rng.standard_normal(len(w))
+    modal = a[:, None] * np.cos(np.outer(w, t)) + b[:, None] * np.sin(np.outer(w, t))
+    return lo.derivatives(P @ modal, t)
+
+
+def test_conservative_lopinf_recovers_spd_stiffness():
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((5, 5))
+    K_true = A @ A.T + np.eye(5)
+    Qh, _, ddQh = _oscillator_data(K_true)
+    ops = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    assert np.linalg.norm(ops.K - K_true) / np.linalg.norm(K_true) < 1e-6
+    assert np.array_equal(ops.K, ops.K.T)
+    assert ops.certificate["min_eig_K"] >= 1e-8
+
+
+def test_standard_opinf_is_unconstrained():
+    rng = np.random.default_rng(4)
+    Qh = rng.standard_normal((3, 400))
+    K_ns = np.array([[2.0, 1.0, 0.0], [-1.0, 1.0, 0.5], [0.0, 0.3, -0.5]])  # neither sym nor PD
+    ddQh = -K_ns @ Qh
+    op = lo.infer_opinf(Qh, None, ddQh, damping=False)
+    assert np.allclose(op.K, K_ns, atol=1e-10)
+    lop = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    assert np.array_equal(lop.K, lop.K.T) and lop.certificate["min_eig_K"] >= 1e-8
+    assert lop.certificate["objective"] >= op.certificate["objective"]
+
+
+def test_rom_conserves_its_energy_and_is_second_order():
+    K = np.diag([1.0, 9.0])
+    M = np.array([[2.0, 0.3], [0.3, 1.0]])
+    rom = lo.LagrangianROM(K=K, M=M)
+    tr = rom.simulate(np.array([1.0, -0.5]), np.array([0.2, 0.0]), 0.01, 10_000)
+    e = rom.energy(tr.Qh, tr.Vh)
+    assert np.abs(e - e[0]).max() / e[0] < 1e-12
+    exact = lambda t: np.cos(np.sqrt(2.0) * t)  # noqa: E731  q'' = -2 q for K=2, M=1
+    one = lo.LagrangianROM(K=[[2.0]])
+    errs = [abs(one.simulate([1.0], [0.0], dt, int(round(3 / dt))).Qh[0, -1] - exact(3.0))
+            for dt in (0.02, 0.01)]
+    assert 3.6 < errs[0] / errs[1] < 4.4
+
+
+def test_snapshots_window_save_load(tmp_path):
+    t = np.linspace(0, 1, 11)
+    Q = np.vstack([t, t**2])
+    s = lo.Snapshots(times=t, Q=Q, blocks={"a": [0], "b": [1]}, U=t[None])
+    w = s.window(0.2, 0.5)
+    assert np.allclose(w.times, t[2:6]) and w.Q.shape == (2, 4) and w.U.shape == (1, 4)
+    loaded = lo.Snapshots.load(s.save(tmp_path / "s.npz"))
+    assert np.array_equal(loaded.Q, Q) and np.array_equal(loaded.blocks["b"], [1])
+    with pytest.raises(ValueError, match="non-finite"):
+        lo.Snapshots(times=t, Q=np.where(Q > 0.5, np.nan, Q))
+    with pytest.raises(ValueError, match="outside"):
+        lo.Snapshots(times=t, Q=Q, blocks={"a": [5]})
+
+
+def test_metrics():
+    assert lo.relative_error(np.ones(4), np.zeros(4)) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="shapes differ"):
+        lo.relative_error(np.ones(4), np.ones(3))
+    assert not lo.metrics.is_stable(np.array([[np.nan]]), np.array([0.0]))
+    assert not lo.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 1.5]))
+    assert lo.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 0.5]))
