@@ -22,7 +22,7 @@ from .ddt import derivatives
 from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
                         infer_wave)
 from .metrics import energy_error, relative_error
-from .rom import LagrangianROM, Trajectory, load_rom, save_rom
+from .rom import LagrangianROM, Trajectory, WaveROM, load_rom, save_rom
 from .snapshots import Snapshots
 
 __version__ = "0.1.0"
@@ -49,4 +49,4 @@ def __getattr__(name):
 
 __all__ = ["Basis", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
-           "infer_wave", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]
+           "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

@@ -348,12 +348,15 @@ def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True) -> MechanicalOpe
     return MechanicalOperators(K, C, B, _certificate(gram, K, C, B, "lstsq", "optimal", seconds, None))
 
 
-def infer_wave(Qh, ddQh, Fh) -> MechanicalOperators:
+def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False) -> MechanicalOperators:
     """Symmetric Kh of the gray-box wave ROM qh_tt = Kh qh - Fh (METHOD.md section 4).
 
     Args:
         Qh, ddQh, Fh: (r, K) reduced states, their second derivatives and the reduced
             nonlinear term V^T f_nl(V qh) on the same grid.
+        negative_semidefinite: also require Kh <= 0. The paper asks only for symmetry; but
+            -Kh is a reduced discrete Laplacian, and a symmetric Kh with a positive
+            eigenvalue makes the linear part of the ROM grow exponentially.
 
     Returns:
         :class:`MechanicalOperators` with ``K`` = Kh (symmetric, unique when Qh has full
@@ -363,7 +366,12 @@ def infer_wave(Qh, ddQh, Fh) -> MechanicalOperators:
     r, K = Qh.shape
     Fh = check_matrix(Fh, "Fh", rows=r, cols=K)
     # qh_tt = Kh qh - Fh  <=>  ddQh + Fh + (-Kh) Qh = 0: the mechanical form with K -> -Kh
-    gram = gram_data(Qh, None, check_matrix(ddQh, "ddQh", rows=r, cols=K) + Fh, damping=False)
+    target = check_matrix(ddQh, "ddQh", rows=r, cols=K) + Fh
+    if negative_semidefinite:  # -Kh >= 0: the conservative mechanical fit with eps = 0
+        ops = infer_mechanical(Qh, None, target, damping=False, eps=0.0)
+        cert = dict(ops.certificate, max_eig_K=float(np.linalg.eigvalsh(-ops.K).max()))
+        return MechanicalOperators(-ops.K, None, None, cert)
+    gram = gram_data(Qh, None, target, damping=False)
     ops = _solve_lyapunov(gram, -np.inf)
     Kh = -ops.K
     cert = dict(ops.certificate, min_eig_K=float(np.linalg.eigvalsh(Kh).min()), status="optimal")

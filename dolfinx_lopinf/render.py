@@ -91,7 +91,8 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
     # distinct markers so coinciding curves stay visible (L-OpInf: large hollow markers)
     styles = {"intrusive": ("intrusive", "C2", "^", 5, None),
               "opinf": ("standard OpInf", "C3", "x", 7, None),
-              "lopinf": ("L-OpInf", "C0", "o", 10, "none")}
+              "lopinf": ("L-OpInf", "C0", "o", 10, "none"),
+              "lopinf_nsd": ("L-OpInf, Kh <= 0", "C1", "D", 7, "none")}
     for method, (label, color, marker, size, face) in styles.items():
         sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
         if not sel:
@@ -136,6 +137,27 @@ def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str 
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
+
+
+def wave_shapes(path, x: np.ndarray, series: dict, *, title: str = "") -> Path:
+    """Pairs of curves 'FOM t=..' / 'ROM .. t=..' on one panel per time (label suffix)."""
+    plt = _pyplot()
+    times = sorted({label.split("t=")[-1] for label in series}, key=float)
+    fig, axes = plt.subplots(len(times), 1, figsize=(7.5, 2.2 * len(times)), sharex=True)
+    axes = np.atleast_1d(axes)
+    for ax, t in zip(axes, times):
+        for i, (label, values) in enumerate((k, v) for k, v in series.items() if k.endswith(f"t={t}")):
+            ax.plot(x, values, lw=3.0 if i == 0 else 1.2, color="C7" if i == 0 else "C3",
+                    ls="-" if i == 0 else "--", label=label.rsplit(" t=", 1)[0])
+        ax.set_ylabel(f"q(x, {t})")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    axes[0].set_title(title)
+    axes[-1].set_xlabel("x")
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)

@@ -248,3 +248,91 @@ def load_rom(path) -> tuple[LagrangianROM, dict]:
         rom = LagrangianROM(**kw, scheme=str(data["scheme"]), meta=json.loads(str(data["meta"])))
         extras = {k: data[k] for k in ("basis_rows", "rows") if k in data.files}
     return rom, extras
+
+
+@dataclass(frozen=True)
+class WaveROM:
+    """Gray-box Lagrangian wave ROM  qh_tt = Kh qh - V^T (w * g(V qh))  (METHOD.md s. 4).
+
+    It is the Euler-Lagrange equation of
+        L_h = 1/2 |qh_t|^2 + 1/2 qh^T Kh qh - sum_i w_i U(V_i qh),
+    so the midpoint variational integrator applies (one small Newton solve per step).
+
+    Attributes:
+        K: (r, r) symmetric Kh.
+        V: (s, r) the basis rows the nonlinearity is sampled at (all n rows, or a
+            hyper-reduced subset).
+        g, dg, U: numpy functions of the pointwise nonlinearity, U' = g, g' = dg.
+        weights: (s,) sampling weights w_i (ones without hyper-reduction).
+        meta: free-form metadata.
+    """
+
+    K: np.ndarray
+    V: np.ndarray
+    g: object
+    dg: object
+    U: object
+    weights: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def r(self) -> int:
+        return self.K.shape[0]
+
+    def _w(self):
+        return np.ones(self.V.shape[0]) if self.weights is None else self.weights
+
+    def force(self, qh: np.ndarray) -> np.ndarray:
+        """Reduced nonlinear force V^T (w * g(V qh)) for (r,) or (r, K)."""
+        w = self._w()
+        z = self.V @ qh
+        return self.V.T @ ((w if z.ndim == 1 else w[:, None]) * self.g(z))
+
+    def energy(self, Qh: np.ndarray, Vh: np.ndarray) -> np.ndarray:
+        """ROM energy 1/2 |v|^2 - 1/2 q^T Kh q + sum_i w_i U(V_i q), per column."""
+        pot = self._w() @ self.U(self.V @ Qh)
+        return 0.5 * np.sum(Vh**2, axis=0) - 0.5 * np.einsum("ik,ij,jk->k", Qh, self.K, Qh) + pot
+
+    def simulate(self, q0, v0, dt: float, n_steps: int, *, every: int = 1, tol: float = 1e-12,
+                 max_newton: int = 20) -> Trajectory:
+        """Midpoint variational integrator in position-momentum form (p = qh_t):
+
+            R(q1) = p0 - (q1 - q0)/dt + dt/2 (Kh m - F(m)) = 0,  m = (q0 + q1)/2
+            p1    = (q1 - q0)/dt + dt/2 (Kh m - F(m)),
+
+        each step solved by Newton with J = -I/dt + dt/4 (Kh - V^T diag(w g'(V m)) V).
+        Raises ``RuntimeError`` naming the step if Newton does not converge.
+        """
+        r, K, V, w = self.r, self.K, self.V, self._w()
+        q = np.asarray(q0, dtype=float).copy()
+        p = np.asarray(v0, dtype=float).copy()
+        if q.shape != (r,) or p.shape != (r,):
+            raise ValueError(f"q0 and v0 must have shape ({r},)")
+        t0 = time.perf_counter()
+        n_out = n_steps // every + 1
+        Q, P = np.empty((r, n_out)), np.empty((r, n_out))
+        Q[:, 0], P[:, 0] = q, p
+        eye = np.eye(r)
+        j = 1
+        for k in range(n_steps):
+            q1 = q + dt * p  # explicit predictor
+            for it in range(max_newton):
+                m = 0.5 * (q + q1)
+                z = V @ m
+                F = V.T @ (w * self.g(z))
+                R = p - (q1 - q) / dt + 0.5 * dt * (K @ m - F)
+                J = -eye / dt + 0.25 * dt * (K - (V.T * (w * self.dg(z))) @ V)
+                dq = np.linalg.solve(J, -R)
+                q1 = q1 + dq
+                if np.linalg.norm(dq) <= tol * max(np.linalg.norm(q1), 1.0):
+                    break
+            else:
+                raise RuntimeError(f"reduced Newton did not converge at step {k + 1} "
+                                   f"(t = {(k + 1) * dt:.6g}): |R| = {np.linalg.norm(R):.3e}")
+            m = 0.5 * (q + q1)
+            p = (q1 - q) / dt + 0.5 * dt * (K @ m - V.T @ (w * self.g(V @ m)))
+            q = q1
+            if (k + 1) % every == 0:
+                Q[:, j], P[:, j] = q, p
+                j += 1
+        return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0)
