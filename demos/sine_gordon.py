@@ -141,14 +141,30 @@ def main(argv=None):
     for row in rows:
         row.setdefault("max_energy_error", None)
 
+    # --- hyper-reduction (ECSW): the reduced force from a few weighted points ----------------
+    r_h = max(cfg["r_long"])
+    rom_full, tr_full = keep[("lopinf", r_h)]
+    hr = hyper_reduce(rom_full, train, dt, cfg)
+    tr_h = hr.simulate(rom_full.V.T @ snaps.Q[:, 0], rom_full.V.T @ v0s, dt, n_steps, every=every)
+    Q_h = rom_full.V @ tr_h.Qh
+    hyper_row = {"method": "lopinf_ecsw", "r": r_h, "points": int(hr.V.shape[0]),
+                 "train_error": lo.relative_error(Q_sub[:, :k_train + 1], Q_h[:, :k_train + 1]),
+                 "test_error": lo.relative_error(Q_sub[:, k_train:], Q_h[:, k_train:]),
+                 "rom_seconds": tr_h.seconds, "rom_seconds_full_nonlinearity": tr_full.seconds,
+                 "infer_seconds": hr.meta["ecsw_seconds"], "stable": bool(np.all(np.isfinite(tr_h.Qh))),
+                 "projection_error_test": rows[-1]["projection_error_test"], "max_energy_error": None}
+    rows.append(hyper_row)
+    scaling = step_time_vs_n(cfg, r_h) if not args.quick else []
+
     metrics = {"scene": "sine_gordon", "n_dofs": int(snaps.n_states), "dt": dt,
                "t_train": cfg["t_train"], "t_end": cfg["t_end"], "t_long": cfg["t_long"],
                "quick": bool(args.quick), "fom_seconds": info["seconds"],
                "fom_energy_drift": info["energy_drift"], "fom_error_vs_exact": exact_err,
                "energy_error_definition": "max over t <= t_long of |E(V qh, V vh) - E(0)| / E(0), FOM energy",
+               "hyper_reduction_step_time_vs_n": scaling,
                "roms": rows}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt)
+    _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, info["seconds"])
     print(f"{'method':>10} {'r':>3} {'train':>9} {'test':>9} {'proj test':>9} {'energy':>9} {'rom s':>7}")
     for row in rows:
         e = row["max_energy_error"]
@@ -156,6 +172,50 @@ def main(argv=None):
               f"{row['projection_error_test']:9.2e} {'' if e is None else f'{e:9.2e}':>9} "
               f"{row['rom_seconds'] or float('nan'):7.2f}")
     return metrics
+
+
+def hyper_reduce(rom, train, dt, cfg, tol=1e-5):
+    """ECSW sampling of sum_i U(V_i qh) on training states; returns the hyper-reduced ROM."""
+    from dolfinx_lopinf import hyper
+
+    t0 = time.perf_counter()
+    Qh = rom.V.T @ train.Q[:, :: max(1, train.Q.shape[1] // 200)]
+    sample = hyper.ecsw(rom.V, Qh, rom.g, tol=tol)
+    seconds = time.perf_counter() - t0
+    return lo.WaveROM(K=rom.K, V=rom.V[sample.rows], g=rom.g, dg=rom.dg, U=rom.U,
+                      weights=sample.weights,
+                      meta={"method": "lopinf_ecsw", "ecsw_seconds": seconds,
+                            "ecsw_residual": sample.residual})
+
+
+def step_time_vs_n(cfg, r, sizes=(2000, 20000), n_steps=2000):
+    """ROM step time with the full and the hyper-reduced nonlinearity for several n
+    (each n: FOM on the training window, POD of [Q, F], L-OpInf, ECSW)."""
+    out = []
+    for n in sizes:
+        sg = scene.build(n)
+        nl = nonlinear.identify(sg.system)
+        v0 = 4.0 / np.cosh(sg.x_local)
+        snaps, info = lo.run(sg.system, np.zeros_like(v0), v0, scene.DT, cfg["t_train"],
+                             state_map=sg.state_map, record_velocity=False, energy_every=0,
+                             progress=False)
+        F = nl(snaps.Q)
+        V = lo.pod(np.hstack([snaps.Q, F]), r).V
+        Qh, _, ddQh = lo.derivatives(V.T @ snaps.Q, snaps.times)
+        K = lo.infer_wave(Qh, ddQh, (V.T @ F)[:, 4:-4], negative_semidefinite=True).K
+        rom = lo.WaveROM(K=K, V=V, g=nl.g, dg=nl.dg, U=nl.U)
+        hr = hyper_reduce(rom, snaps, scene.DT, cfg)
+        vh0 = V.T @ v0_state(sg, v0)
+        full = rom.simulate(np.zeros(r), vh0, scene.DT, n_steps)
+        fast = hr.simulate(np.zeros(r), vh0, scene.DT, n_steps)
+        out.append({"n": n, "fom_seconds_train_window": info["seconds"],
+                    "step_us_full": 1e6 * full.seconds / n_steps,
+                    "step_us_hyper": 1e6 * fast.seconds / n_steps, "points": int(hr.V.shape[0]),
+                    "hyper_vs_full_error": lo.relative_error(V @ full.Qh, V @ fast.Qh)})
+        print(f"n = {n}: ROM step {out[-1]['step_us_full']:.0f} us (all points) vs "
+              f"{out[-1]['step_us_hyper']:.0f} us ({out[-1]['points']} ECSW points), "
+              f"difference {out[-1]['hyper_vs_full_error']:.1e}")
+    return out
 
 
 def v0_state(sg, v0_local):
@@ -174,7 +234,7 @@ def fom_energy(Qh, Vh, V, K_fom, nl, h):
                 + np.sum(nl.U(Z), axis=0))
 
 
-def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt):
+def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
     render.error_vs_r(out / "error_vs_r.png", [r for r in rows if np.isfinite(r["test_error"])],
                       title="sine-Gordon: relative state error")
     r_show = max(cfg["r_long"])
@@ -186,11 +246,25 @@ def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt):
         j = int(round(t / (dt * cfg["every"])))
         series[f"L-OpInf r={r_show} t={t:g}"] = rom.V @ tr.Qh[:, j]
     render.wave_shapes(out / "wave_shapes.png", sg.x, series, title="sine-Gordon wave shapes")
-    render.curves(out / "energy_error.png", {f"{m} r={r}": c[0] for (m, r), c in energy_curves.items()},
-                  {f"{m} r={r}": np.maximum(c[1], 1e-16) for (m, r), c in energy_curves.items()},
-                  ylabel="relative FOM energy error", logy=True, vline=cfg["t_train"],
-                  colors=["C0", "C1", "C3", "C2", "C9", "C5", "C4", "C8"],
+    r_max = max(cfg["r_long"])
+    shown = [(m, r) for (m, r) in energy_curves if r == r_max] + \
+        [(m, r) for (m, r) in energy_curves if r != r_max and m == "lopinf_nsd"]
+    names = {"lopinf": "L-OpInf", "lopinf_nsd": "L-OpInf, Kh<=0", "opinf": "standard OpInf",
+             "intrusive": "intrusive"}
+    render.curves(out / "energy_error.png",
+                  {f"{names[m]} r={r}": energy_curves[(m, r)][0] for m, r in shown},
+                  {f"{names[m]} r={r}": np.clip(energy_curves[(m, r)][1], 1e-16, 1e3) for m, r in shown},
+                  ylabel="relative FOM energy error (clipped at 1e3)", logy=True,
+                  vline=cfg["t_train"], colors=["C0", "C1", "C3", "C2", "C5"],
                   title="FOM energy of the reconstructed ROM state")
+    fast = [r for r in rows if r["method"] == "lopinf_ecsw"]
+    pts = {}
+    for method in ("lopinf", "lopinf_nsd", "opinf", "intrusive"):
+        sel = [r for r in rows if r["method"] == method and r["test_error"] < 10]
+        pts[names[method]] = ([r["rom_seconds"] for r in sel], [r["test_error"] for r in sel])
+    pts["L-OpInf + ECSW"] = ([r["rom_seconds"] for r in fast], [r["test_error"] for r in fast])
+    render.speed_vs_error(out / "speed_vs_error.png", pts, fom_seconds=fom_seconds,
+                          title="sine-Gordon: ROM time to t_end vs test error (blow-ups omitted)")
 
 
 if __name__ == "__main__":

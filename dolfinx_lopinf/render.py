@@ -162,3 +162,24 @@ def wave_shapes(path, x: np.ndarray, series: dict, *, title: str = "") -> Path:
     fig.savefig(path, dpi=130)
     plt.close(fig)
     return Path(path)
+
+
+def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, title: str = "") -> Path:
+    """Scatter of (seconds, error) per label, with the FOM time as a vertical line."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    markers = ["o", "D", "x", "^", "*", "s"]
+    for i, (label, (secs, errs)) in enumerate(points.items()):
+        ax.loglog(secs, errs, markers[i % len(markers)], label=label, markersize=8 if i else 10,
+                  markerfacecolor="none" if i < 2 else None, color=f"C{i}")
+    if fom_seconds:
+        ax.axvline(fom_seconds, color="k", ls=":", label=f"FOM {fom_seconds:.1f} s")
+    ax.set_xlabel("wall time [s]")
+    ax.set_ylabel("relative test error")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
