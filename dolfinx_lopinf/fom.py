@@ -166,7 +166,7 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
 def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_every: int = 1,
         state_until: float | None = None, output_matrix: np.ndarray | None = None,
         state_map: StateMap | None = None, record_velocity: bool = True,
-        energy_every: int | None = None, progress: bool = True,
+        energy_every: int | None = None, energy_until: float | None = None, progress: bool = True,
         integrator: MidpointIntegrator | None = None) -> tuple[Snapshots | None, dict]:
     """Integrate the FOM and record snapshots.
 
@@ -182,6 +182,8 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
         state_map: dof -> state coordinates (default: ordered by dof coordinates, so the
             result does not depend on the number of ranks).
         record_velocity: also record velocities (one mass solve per recorded step).
+        energy_until: keep recording the energy (every ``energy_every`` samples) up to this
+            time, past ``state_until`` (default: ``state_until``).
         energy_every: record the FOM energy every that many recorded samples (default: each
             recorded state sample; 0 disables).
         progress: show a tqdm progress bar on rank 0.
@@ -201,6 +203,7 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
         raise ValueError("record_every must be >= 1")
     state_until = t_end if state_until is None else state_until
     n_state_steps = int(round(state_until / dt))
+    n_energy_steps = int(round((state_until if energy_until is None else energy_until) / dt))
     V = system.V
     comm = V.mesh.comm
     state_map = StateMap.from_coordinates(V) if state_map is None else state_map
@@ -228,6 +231,11 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
             energies.append(stepper.energy(v))
             energy_times.append(stepper.t)
 
+    def record_energy():
+        stepper.velocity(v)
+        energies.append(stepper.energy(v))
+        energy_times.append(stepper.t)
+
     def record_output():
         if output_matrix is not None:
             ys.append(comm.allreduce(output_matrix @ stepper.q.x.array))
@@ -238,13 +246,19 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
         from tqdm.auto import tqdm
         bar = tqdm(total=n_steps, desc="FOM", unit="step", mininterval=0.5, leave=False)
     t0 = time.perf_counter()
+    seconds_states = 0.0
     record(0)
     record_output()
     for k in range(1, n_steps + 1):
         stepper.step()
         if k % record_every == 0:
+            j = k // record_every
             if k <= n_state_steps:
-                record(k // record_every)
+                record(j)
+                if k == n_state_steps:
+                    seconds_states = time.perf_counter() - t0
+            elif k <= n_energy_steps and energy_every and j % energy_every == 0:
+                record_energy()
             record_output()
         if bar is not None and k % 1000 == 0:
             bar.update(1000)
@@ -255,6 +269,7 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
     drift = float(np.max(np.abs(energies - energies[0])) / abs(energies[0])) if len(energies) > 1 \
         and energies[0] != 0 else float("nan")
     info = {"seconds": seconds, "steps": n_steps, "energy_drift": drift,
+            "seconds_to_state_until": comm.allreduce(seconds_states, op=MPI.MAX),
             "energy": energies, "energy_times": np.array(energy_times)}
     Qg = gather_states(V, Q, state_map)
     Vg = gather_states(V, Vel, state_map) if record_velocity else None
