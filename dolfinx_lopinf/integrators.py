@@ -268,3 +268,132 @@ class MidpointIntegrator:
         sysm.q_t.x.array[:] = v.x.array
         local = fem.assemble_scalar(self._energy)
         return float(sysm.V.mesh.comm.allreduce(local))
+
+
+class NewmarkIntegrator:
+    """Newmark average acceleration (gamma = 1/2, beta = 1/4) for a forced, damped linear
+    system  M q_tt + C q_t + K q = sum_j b_j u_j(t)  (METHOD.md section 2):
+
+        q* = q + dt v + dt^2/4 a,   v* = v + dt/2 a
+        A a1 = sum_j b_j u_j(t1) - C v* - K q*,   A = M + dt/2 C + dt^2/4 K  (factored once)
+        q1 = q* + dt^2/4 a1,   v1 = v* + dt/2 a1.
+
+    M and K are the mass and stiffness forms of a quadratic :class:`LagrangianSystem`;
+    C = alpha M + beta K (Rayleigh); each b_j is an assembled input form (e.g. a chamber
+    pressure). Homogeneous Dirichlet conditions of the system are applied.
+
+    Args:
+        system: quadratic Lagrangian system.
+        dt: time step.
+        rayleigh: (alpha, beta).
+        input_forms: linear forms b_j(v), one per input channel.
+        solver: ``"direct"`` (MUMPS LU of A) or ``"cg"`` (CG + GAMG with ``near_nullspace``).
+        near_nullspace: optional PETSc NullSpace (rigid body modes) for GAMG.
+    """
+
+    def __init__(self, system: LagrangianSystem, dt: float, *, rayleigh=(0.0, 0.0),
+                 input_forms=(), solver: str = "direct", near_nullspace=None,
+                 prefix: str = "lopinf_newmark_", petsc_options: dict | None = None):
+        if not system.is_quadratic:
+            raise ValueError("Newmark here is for linear systems (a quadratic Lagrangian)")
+        if solver not in ("direct", "cg"):
+            raise ValueError(f"solver must be 'direct' or 'cg', got {solver!r}")
+        _check_homogeneous(system.bcs, system.V)
+        self.system, self.dt = system, float(dt)
+        V, comm = system.V, system.V.mesh.comm
+        bcs = list(system.bcs)
+        self._bcs = bcs
+        alpha, beta = rayleigh
+        M = fpetsc.assemble_matrix(fem.form(system.mass_form), bcs=bcs)
+        M.assemble()
+        K = fpetsc.assemble_matrix(fem.form(system.stiffness_form), bcs=bcs, diag=0.0)
+        K.assemble()
+        C = M.copy()
+        C.scale(alpha)
+        C.axpy(beta, K)
+        A = M.copy()
+        A.axpy(0.5 * self.dt, C)
+        A.axpy(0.25 * self.dt**2, K)
+        self.M, self.K, self.C, self.A = M, K, C, A
+        if solver == "direct":
+            self._ksp = _direct_solver(A, comm, prefix, petsc_options)
+        else:
+            if near_nullspace is not None:
+                A.setNearNullSpace(near_nullspace)
+            ksp = PETSc.KSP().create(comm)
+            ksp.setOperators(A)
+            ksp.setOptionsPrefix(prefix)
+            ksp.setType("cg")
+            ksp.getPC().setType("gamg")
+            ksp.setTolerances(rtol=1e-10, atol=1e-30, max_it=2000)
+            opts = PETSc.Options()
+            for key, value in (petsc_options or {}).items():
+                opts[f"{prefix}{key}"] = value
+            ksp.setFromOptions()
+            self._ksp = ksp
+        self.inputs = []
+        for form in input_forms:
+            b = fpetsc.assemble_vector(fem.form(form))
+            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+            fpetsc.set_bc(b, bcs)
+            self.inputs.append(b)
+        self.q, self.v, self.a = (fem.Function(V) for _ in range(3))
+        self._qs, self._vs, self._rhs, self._tmp = (fpetsc.create_vector(V) for _ in range(4))
+        self.t = 0.0
+
+    def _load(self, u, out):
+        out.set(0.0)
+        u = np.atleast_1d(np.asarray(u, dtype=float))
+        if len(u) != len(self.inputs):
+            raise ValueError(f"expected {len(self.inputs)} input values, got {len(u)}")
+        for b, uj in zip(self.inputs, u):
+            out.axpy(float(uj), b)
+        return out
+
+    def initialize(self, u0=None):
+        """Start from rest (q = v = 0) with the consistent acceleration M a0 = B u(0)."""
+        for f in (self.q, self.v, self.a):
+            f.x.array[:] = 0.0
+        if self.inputs:
+            rhs = self._load(u0 if u0 is not None else np.zeros(len(self.inputs)), self._rhs)
+            ksp = _direct_solver(self.M, self.system.V.mesh.comm, "lopinf_newmark_mass_", None)
+            ksp.solve(rhs, self.a.x.petsc_vec)
+            self.a.x.scatter_forward()
+            ksp.destroy()
+        self.t = 0.0
+
+    def step(self, u1):
+        """Advance one step with the inputs u(t + dt)."""
+        dt = self.dt
+        q, v, a = self.q.x.petsc_vec, self.v.x.petsc_vec, self.a.x.petsc_vec
+        qs, vs, rhs, tmp = self._qs, self._vs, self._rhs, self._tmp
+        q.copy(qs)
+        qs.axpy(dt, v)
+        qs.axpy(0.25 * dt**2, a)
+        v.copy(vs)
+        vs.axpy(0.5 * dt, a)
+        self._load(u1, rhs)
+        self.C.mult(vs, tmp)
+        rhs.axpy(-1.0, tmp)
+        self.K.mult(qs, tmp)
+        rhs.axpy(-1.0, tmp)
+        fpetsc.set_bc(rhs, self._bcs)
+        self._ksp.solve(rhs, a)
+        if self._ksp.getConvergedReason() <= 0:
+            raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: KSP reason "
+                             f"{self._ksp.getConvergedReason()}")
+        qs.copy(q)
+        q.axpy(0.25 * dt**2, a)
+        vs.copy(v)
+        v.axpy(0.5 * dt, a)
+        for f in (self.q, self.v, self.a):
+            f.x.scatter_forward()
+        self.t += dt
+
+    def energy(self) -> float:
+        """1/2 v^T M v + 1/2 q^T K q (mechanical energy)."""
+        q, v, tmp = self.q.x.petsc_vec, self.v.x.petsc_vec, self._tmp
+        self.M.mult(v, tmp)
+        e = 0.5 * v.dot(tmp)
+        self.K.mult(q, tmp)
+        return float(e + 0.5 * q.dot(tmp))

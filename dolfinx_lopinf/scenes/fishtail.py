@@ -1,0 +1,119 @@
+"""Soft-robotic fishtail: 3D linear elasticity, two materials, pressurised chambers.
+
+    L = integral( 1/2 rho q_t . q_t - 1/2 sigma(q) : eps(q) ) dx,
+    sigma = lambda tr(eps) I + 2 mu eps,
+    virtual work of the chambers:  -(u_pre + u(t)) n . dq  on the left walls,
+                                   -(u_pre - u(t)) n . dq  on the right walls,
+
+clamped at the root (z = 0), Rayleigh damping C = alpha M + beta K, Newmark dt = 1e-3 s.
+Materials (METHOD.md): hull lambda = 2.03e5, mu = 8.45e3 N/m^2 and rho = 1.07e3 kg/m^3 (the
+paper prints 1.07e-3; a silicone is ~1.07e3, which we use); beam rho = 1.40e3,
+lambda = 1.71e10, mu = 1.14e10. The hull's Poisson ratio is 0.48 and the stiffness contrast
+1e6: P2 tetrahedra keep the thin beam's bending and the nearly incompressible hull free of the
+locking that P1 shows.
+
+Output: the lateral (x) displacement of the rear tip of the beam, (0, 0, 0.21) m.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .._dolfinx import MPI, PETSc, dolfinx, ufl
+from ..fom import point_output_matrix
+from ..lagrangian import LagrangianSystem
+
+HULL = dict(lam=2.03e5, mu=8.45e3, rho=1.07e3)
+BEAM = dict(lam=1.71e10, mu=1.14e10, rho=1.40e3)
+RAYLEIGH = (1e-4, 2e-4)
+DT = 1e-3
+T_END = 2.0
+POI = (0.0, 0.0, 0.21)
+
+
+def u_step(t):
+    return np.where(t < 0.1, 0.0, 5000.0)
+
+
+def u_sine(t):
+    return np.where(t < 0.1, 0.0, 2500.0 * (np.sin(10 * np.pi * (t - 1.75)) + 1))
+
+
+def u_ramp(t):
+    return np.where(t < 0.1, 50000.0 * t, 5000.0)
+
+
+def u_sigmoid(t):
+    s = t / 0.025
+    return np.where(t < 0.1, 5000.0 * np.sqrt(17) / 4 * s / np.sqrt(1 + s**2), 5000.0)
+
+
+INPUTS = {"step": u_step, "sine": u_sine, "ramp": u_ramp, "sigmoid": u_sigmoid}
+
+
+@dataclass
+class Fishtail:
+    system: LagrangianSystem
+    input_forms: list  # [left chamber, right chamber] virtual work per unit pressure
+    output_matrix: np.ndarray  # (1, n_local): x-displacement at the POI
+    cell_tags: object
+    facet_tags: object
+
+    def chamber_pressures(self, u, u_pre: float = 0.0):
+        """Inputs of the two chambers: (u_pre + u, u_pre - u)."""
+        return np.array([u_pre + u, u_pre - u])
+
+
+def mesh(lc: float, comm=MPI.COMM_WORLD):
+    """Mesh the geometry of meshes/fishtail.py with element size lc (gmsh on rank 0)."""
+    import gmsh
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "meshes"))
+    import fishtail as geometry  # meshes/fishtail.py
+
+    if comm.rank == 0:
+        gmsh.initialize()
+        geometry.build(lc)
+    from dolfinx.io import gmsh as gmshio
+
+    data = gmshio.model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, 0, gdim=3)
+    if comm.rank == 0:
+        gmsh.finalize()
+    return data.mesh, data.cell_tags, data.facet_tags, geometry.TAGS
+
+
+def build(lc: float = 0.007, comm=MPI.COMM_WORLD, *, degree: int = 2) -> Fishtail:
+    msh, cell_tags, facet_tags, tags = mesh(lc, comm)
+    V = dolfinx.fem.functionspace(msh, ("Lagrange", degree, (3,)))
+    Q0 = dolfinx.fem.functionspace(msh, ("DG", 0))
+    lam, mu, rho = (dolfinx.fem.Function(Q0) for _ in range(3))
+    for f, key in ((lam, "lam"), (mu, "mu"), (rho, "rho")):
+        f.x.array[:] = HULL[key]
+        f.x.array[cell_tags.find(tags["beam"])] = BEAM[key]
+        f.x.scatter_forward()
+    q, q_t = dolfinx.fem.Function(V, name="q"), dolfinx.fem.Function(V, name="q_t")
+
+    def eps(w):
+        return ufl.sym(ufl.grad(w))
+
+    def sigma(w):
+        return lam * ufl.tr(eps(w)) * ufl.Identity(3) + 2 * mu * eps(w)
+
+    # The whole physics: kinetic minus strain energy density.
+    lagrangian = (0.5 * rho * ufl.inner(q_t, q_t) - 0.5 * ufl.inner(sigma(q), eps(q))) * ufl.dx
+    fdim = msh.topology.dim - 1
+    root = facet_tags.find(tags["root"])
+    bc = dolfinx.fem.dirichletbc(np.zeros(3, dtype=PETSc.ScalarType),
+                                 dolfinx.fem.locate_dofs_topological(V, fdim, root), V)
+    system = LagrangianSystem(lagrangian, q, q_t, bcs=[bc])
+    ds = ufl.Measure("ds", domain=msh, subdomain_data=facet_tags)
+    n = ufl.FacetNormal(msh)
+    v = ufl.TestFunction(V)
+    input_forms = [-ufl.inner(n, v) * ds(tags["chamber_left"]),
+                   -ufl.inner(n, v) * ds(tags["chamber_right"])]
+    E = point_output_matrix(V, np.array([POI]), component=0)
+    return Fishtail(system, input_forms, E, cell_tags, facet_tags)
