@@ -45,3 +45,21 @@ def test_chamber_pressure_bends_the_tail_antisymmetrically(small):
     assert np.all(np.isfinite(y_plus)) and np.abs(y_plus).max() > 1e-5
     assert np.abs(y_plus + y_minus).max() < 0.05 * np.abs(y_plus).max()
     assert e_plus[-1] > 0
+
+
+def test_fishtail_demo_quick(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "demos" / "fishtail.py"
+    proc = subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    lop = [r for r in m["roms"] if r["method"] == "lopinf"]
+    assert all(r["min_eig_K"] > 0 and r["min_eig_C"] > 0 and r["stable"] for r in lop)
+    best = min(r["output_errors"]["sine"] for r in lop)
+    assert best < 2e-2  # training input, short horizon
+    assert (tmp_path / "poi_step.png").stat().st_size > 10_000
