@@ -36,14 +36,16 @@ SIZES = {"small": 0.012, "default": 0.007, "large": 0.0028}
 TRAIN_WINDOW = {"sine": 0.4, "sigmoid": 1.0}
 
 
-def run_fom(tail, nm, u_fn, t_end, t_keep, comm):
-    """Newmark to t_end; keep owned states to t_keep, outputs and energy every step."""
+def run_fom(tail, nm, u_fn, t_end, t_keep, comm, snap_steps=()):
+    """Newmark to t_end; keep owned states to t_keep (and at ``snap_steps``, for renders),
+    outputs and energy every step."""
     dt = scene.DT
     n_steps = int(round(t_end / dt))
     n_keep = int(round(t_keep / dt))
     n_owned = tail.system.V.dofmap.index_map.size_local * 3
     Q = np.empty((n_owned, n_keep + 1))
     Y, E = np.empty(n_steps + 1), np.empty(n_steps + 1)
+    snaps = {}
     nm.initialize(tail.chamber_pressures(float(u_fn(0.0))))
     Q[:, 0] = 0.0
     Y[0], E[0] = 0.0, 0.0
@@ -52,9 +54,12 @@ def run_fom(tail, nm, u_fn, t_end, t_keep, comm):
         nm.step(tail.chamber_pressures(float(u_fn(k * dt))))
         if k <= n_keep:
             Q[:, k] = nm.q.x.array[:n_owned]
+        if k in snap_steps:
+            snaps[k] = nm.q.x.array.copy()
         Y[k] = comm.allreduce(float((tail.output_matrix @ nm.q.x.array)[0]))
         E[k] = nm.energy()
     seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
+    run_fom.snapshots = snaps
     return Q, Y, E, seconds
 
 
@@ -85,10 +90,16 @@ def main(argv=None):
         print(f"fishtail ({size}): {n_dofs} dofs, set-up {setup_s:.1f} s")
     state_map = StateMap.from_coordinates(V)
     fom = {}
+    render_input = inputs[-1]  # an unseen input
+    render_times = [0.15, 0.3, t_end] if args.quick else [0.15, 0.5, 1.0, 2.0]
+    render_steps = [int(round(t / dt)) for t in render_times]
+    gif_steps = list(range(int(round(t_end / dt)) // 40, int(round(t_end / dt)) + 1, int(round(t_end / dt)) // 40))
     for name in inputs:
         keep = t_train if name == args.train else 0.0
-        Q, Y, E, seconds = run_fom(tail, nm, scene.INPUTS[name], t_end, keep, comm)
-        fom[name] = dict(Q=gather_states(V, Q, state_map) if keep else None, Y=Y, E=E, seconds=seconds)
+        steps = set(render_steps + gif_steps) if name == render_input else ()
+        Q, Y, E, seconds = run_fom(tail, nm, scene.INPUTS[name], t_end, keep, comm, snap_steps=steps)
+        fom[name] = dict(Q=gather_states(V, Q, state_map) if keep else None, Y=Y, E=E, seconds=seconds,
+                         fields=run_fom.snapshots)
         if comm.rank == 0:
             print(f"FOM {name}: {int(round(t_end / dt))} steps in {seconds:.1f} s, "
                   f"max |y| = {np.abs(Y).max():.3e} m")
@@ -143,7 +154,7 @@ def main(argv=None):
                 row.setdefault("energy_errors", {})[name] = float(
                     np.abs(e_rom - fom[name]["E"]).max() / np.abs(fom[name]["E"]).max())
                 if r == r_values[-1] or r == 2:
-                    rom_plot[(method, r, name)] = tr
+                    rom_plot[(method, r, name)] = (tr, Vr)
             row["train_error"] = row["output_errors"][args.train]
             row["test_error"] = max(v for k, v in row["output_errors"].items() if k != args.train)
             row["stable"] = bool(all(np.isfinite(v) for v in row["output_errors"].values()))
@@ -165,15 +176,44 @@ def main(argv=None):
         series = {"FOM": fom[name]["Y"]}
         for (method, r, nm_), tr in rom_plot.items():
             if nm_ == name and method == "lopinf":
-                series[f"L-OpInf r={r}"] = tr.Y[0]
+                series[f"L-OpInf r={r}"] = tr[0].Y[0]
         render.curves(out / f"poi_{name}.png", t, series, ylabel="tip displacement x [m]",
                       vline=t_train if name == args.train else None,
                       title=f"{name} input" + (" (training input)" if name == args.train else " (unseen)"),
                       colors=["C7", "C0", "C1", "C2"])
+    if comm.size == 1:
+        _renders(out, V, state_map, fom[render_input]["fields"], rom_plot, render_input,
+                 render_steps, gif_steps, r_values[-1], dt)
     print(f"{'method':>10} {'r':>3} " + " ".join(f"{n:>9}" for n in inputs))
     for row in rows:
         print(f"{row['method']:>10} {row['r']:>3} " + " ".join(f"{row['output_errors'][n]:9.2e}" for n in inputs))
     return metrics
+
+
+def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps, r, dt):
+    """FOM vs L-OpInf deformed fishtail (serial): stills at a few times and a GIF."""
+    import pyvista
+    from dolfinx import plot
+
+    topology, cell_types, geometry = plot.vtk_mesh(V)
+    grid = pyvista.UnstructuredGrid(topology, cell_types, geometry)
+    tr, Vr = rom_plot[("lopinf", r, name)]
+    n_pts = geometry.shape[0]
+
+    def rom_field(k):
+        state = Vr @ tr.Qh[:, k]
+        return state_map.to_dofs(state[:, None])[:, 0].reshape(-1, 3)[:n_pts]
+
+    peak = max(np.abs(fields[k]).max() for k in render_steps)
+    magnify = 0.03 / peak  # largest displacement drawn as 3 cm
+    frames = [{"FOM": fields[k].reshape(-1, 3)[:n_pts], f"L-OpInf r={r}": rom_field(k)}
+              for k in render_steps]
+    render.deformed_side_by_side(out / f"deformed_{name}.png", grid, frames, magnify=magnify,
+                                 titles=[f"t = {k * dt:.2f} s (x{magnify:.0f})" for k in render_steps])
+    render.animation(out / f"deformed_{name}.gif", grid,
+                     {"FOM": [fields[k].reshape(-1, 3)[:n_pts] for k in gif_steps],
+                      f"L-OpInf r={r}": [rom_field(k) for k in gif_steps]},
+                     magnify=magnify, titles=[f"t = {k * dt:.2f} s" for k in gif_steps])
 
 
 def apply_matrix(A, V, X, state_map):

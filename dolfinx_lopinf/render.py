@@ -183,3 +183,72 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
     fig.savefig(path, dpi=130)
     plt.close(fig)
     return Path(path)
+
+
+def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, titles=None,
+                          clim=None) -> Path:
+    """3D deformed shapes, one row per frame, one column per label (e.g. FOM | ROM).
+
+    Args:
+        grid: a pyvista UnstructuredGrid of the undeformed mesh (points in dof order).
+        frames: list of {label: (n_points, 3) displacement}; one row each.
+        magnify: displacement magnification.
+        titles: optional row titles (e.g. times).
+    """
+    pv = _pyvista()
+    labels = list(frames[0])
+    plotter = pv.Plotter(shape=(len(frames), len(labels)), off_screen=True,
+                         window_size=(420 * len(labels), 360 * len(frames)), border=False)
+    if clim is None:
+        clim = (0.0, max(np.linalg.norm(u, axis=1).max() for f in frames for u in f.values()))
+    for i, frame in enumerate(frames):
+        for j, label in enumerate(labels):
+            plotter.subplot(i, j)
+            g = grid.copy()
+            g.point_data["u"] = frame[label]
+            g.point_data["|u| [m]"] = np.linalg.norm(frame[label], axis=1)
+            warped = g.warp_by_vector("u", factor=magnify)
+            plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim,
+                             show_scalar_bar=(i == 0 and j == len(labels) - 1))
+            plotter.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.3)
+            text = label if titles is None else f"{label}  {titles[i]}"
+            plotter.add_text(text, font_size=9, position="upper_left")
+            plotter.camera_position = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]  # top view: lateral bending
+    path = Path(path)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path
+
+
+def animation(path, grid, series: dict, *, magnify: float, fps: int = 10, titles=None) -> Path:
+    """GIF of deformed shapes, one panel per label, frames in time (needs imageio)."""
+    pv = _pyvista()
+    labels = list(series)
+    n_frames = len(next(iter(series.values())))
+    clim = (0.0, max(np.linalg.norm(u, axis=1).max() for s in series.values() for u in s))
+    plotter = pv.Plotter(shape=(1, len(labels)), off_screen=True, window_size=(420 * len(labels), 380))
+    path = Path(path)
+    plotter.open_gif(str(path), fps=fps)
+    meshes = []
+    for j, label in enumerate(labels):
+        plotter.subplot(0, j)
+        g = grid.copy()
+        g.point_data["u"] = series[label][0]
+        g.point_data["|u| [m]"] = np.linalg.norm(series[label][0], axis=1)
+        warped = g.warp_by_vector("u", factor=magnify)
+        plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim, show_scalar_bar=False)
+        plotter.add_text(label, font_size=9, name=f"title{j}")
+        plotter.camera_position = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]
+        meshes.append((g, warped))
+    for k in range(n_frames):
+        for j, label in enumerate(labels):
+            g, warped = meshes[j]
+            u = series[label][k]
+            warped.points[:] = g.points + magnify * u
+            warped.point_data["|u| [m]"] = np.linalg.norm(u, axis=1)
+            if titles is not None:
+                plotter.subplot(0, j)
+                plotter.add_text(f"{label}  {titles[k]}", font_size=9, name=f"title{j}")
+        plotter.write_frame()
+    plotter.close()
+    return path
