@@ -29,6 +29,21 @@ def _pyplot():
     return plt
 
 
+def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str) -> Path:
+    """Label, grid, legend, save and close a one-axis matplotlib figure."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return Path(path)
+
+
 def beam_shapes(path, x: np.ndarray, shapes: dict, times: list, *, title: str = "") -> Path:
     """Render 1D beam deflections as 3D tubes (pyvista, off-screen), one panel per time.
 
@@ -103,15 +118,9 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
         ax.semilogy(rs, [min(r["test_error"], 1e3) for r in sel], "--", label=f"{label} test", **kw)
     sel = sorted((r for r in rows if r["method"] == "lopinf"), key=lambda r: r["r"])
     ax.semilogy([r["r"] for r in sel], [r["projection_error_test"] for r in sel], "k:", label="projection (test)")
-    ax.set_xlabel("reduced dimension r")
-    ax.set_ylabel("relative state error")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-    return Path(path)
+    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel="relative state error",
+                   title=title)
 
 
 def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
@@ -132,15 +141,7 @@ def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str 
         ax.set_yscale("log")
     if vline is not None:
         ax.axvline(vline, color="k", ls=":", lw=1, label="end of training")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-    return Path(path)
+    return _finish(fig, ax, path, xlabel=xlabel, ylabel=ylabel, title=title)
 
 
 def wave_shapes(path, x: np.ndarray, series: dict, *, title: str = "") -> Path:
@@ -174,15 +175,7 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
                   markerfacecolor="none" if i < 2 else None, color=f"C{i}")
     if fom_seconds:
         ax.axvline(fom_seconds, color="k", ls=":", label=f"FOM {fom_seconds:.1f} s")
-    ax.set_xlabel("wall time [s]")
-    ax.set_ylabel("relative test error")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-    return Path(path)
+    return _finish(fig, ax, path, xlabel="wall time [s]", ylabel="relative test error", title=title)
 
 
 def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, titles=None,
