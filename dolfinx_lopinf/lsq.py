@@ -276,10 +276,9 @@ def solve_symmetric_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int) -> np.nd
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
     Hs = H / np.outer(d, d)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("error", scipy.linalg.LinAlgWarning)
-            y = -scipy.linalg.solve(Hs, h / d, assume_a="pos")
-    except (np.linalg.LinAlgError, scipy.linalg.LinAlgWarning):
+        y = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(Hs, check_finite=False), h / d,
+                                    check_finite=False)
+    except np.linalg.LinAlgError:
         y = -np.linalg.lstsq(Hs, h / d, rcond=None)[0]
     return _theta_from_x(y / d, r, n_blocks, terms)
 
@@ -406,7 +405,11 @@ def solve_admm_sym(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *, t
         return out
 
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-    x = -np.linalg.lstsq(H / np.outer(d, d), h / d, rcond=None)[0] / d
+    try:  # warm start: the symmetric minimiser (Jacobi-equilibrated Cholesky solve)
+        x = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H / np.outer(d, d), check_finite=False),
+                                    h / d, check_finite=False) / d
+    except np.linalg.LinAlgError:
+        x = -np.linalg.lstsq(H / np.outer(d, d), h / d, rcond=None)[0] / d
     scale_k = np.array([np.mean(np.diag(H)[blk == k]) for k in range(n_blocks)])
     rho = 1.0
 
@@ -430,7 +433,7 @@ def solve_admm_sym(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *, t
     g = z_next - z
     dZ, dG = [], []
     it, prim, dual = 0, np.inf, np.inf
-    n_mixed = 0
+    n_mixed, n_rho = 0, 0
     for it in range(1, max_iter + 1):
         w_prev = z[:n]
         candidate = None
@@ -459,7 +462,8 @@ def solve_admm_sym(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *, t
         dual = np.linalg.norm(w - w_prev) / max(np.linalg.norm(y), nw, 1e-300)
         if prim < tol and dual < tol:
             break
-        if it % 25 == 0 and (prim > 10 * dual or dual > 10 * prim):
+        if it % 25 == 0 and n_rho < 3 and (prim > 10 * dual or dual > 10 * prim):
+            n_rho += 1  # each change costs a factorisation: allow a few
             f = 4.0 if prim > dual else 0.25
             rho *= f
             z = np.concatenate([z[:n], z[n:] / f])
