@@ -92,6 +92,7 @@ def main(argv=None):
         "t_end": cfg["t_end"], "t_energy": cfg["t_energy"], "t_long": cfg["t_long"],
         "quick": bool(args.quick),
         "fom_seconds": info["seconds"], "fom_steps": info["steps"],
+        "fom_seconds_to_t_end": info["seconds_to_state_until"],
         "fom_energy_drift": info["energy_drift"],
         "energy_error_definition": "max over t <= t_energy of |E(V qh, V vh) - E(V qh0, V vh0)| / E(V qh0, V vh0), FOM energy",
         "stable_definition": "states finite and relative FOM energy error <= 1 for t <= t_energy",

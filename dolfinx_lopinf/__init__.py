@@ -23,6 +23,7 @@ from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infe
                         infer_wave)
 from .metrics import energy_error, relative_error
 from .rom import LagrangianROM, Trajectory, WaveROM, load_rom, save_rom
+from .selection import Choice, choose_r
 from .snapshots import Snapshots
 
 __version__ = "0.1.0"
@@ -47,6 +48,6 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["Basis", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+__all__ = ["Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
-           "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]
+           "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

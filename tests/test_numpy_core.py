@@ -144,3 +144,23 @@ def test_metrics():
     assert not lo.metrics.is_stable(np.array([[np.nan]]), np.array([0.0]))
     assert not lo.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 1.5]))
     assert lo.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 0.5]))
+
+
+def test_choose_r_picks_the_smallest_sufficient_dimension():
+    rng = np.random.default_rng(7)
+    n, r_true = 40, 6
+    P = np.linalg.qr(rng.standard_normal((n, r_true)))[0]
+    w = np.array([1.0, 1.7, 2.3, 3.1, 4.4, 5.2])
+    t = np.arange(0, 6, 0.01)
+    amps = np.array([1.0, 0.3, 0.1, 0.03, 0.01, 0.003])
+    phase = rng.uniform(0, 6, r_true)
+    Q = P @ (amps[:, None] * np.cos(np.outer(w, t) + phase[:, None]))
+    V0 = P @ (-amps * w * np.sin(phase))
+    loose = lo.choose_r(Q, t, [1, 2, 3, 4, 5, 6], 0.1, V0=V0)
+    tight = lo.choose_r(Q, t, [1, 2, 3, 4, 5, 6], 1e-3, V0=V0)
+    assert loose.r is not None and tight.r is not None and loose.r < tight.r
+    assert [s["r"] for s in tight.scores] == list(range(1, tight.r + 1))  # stops at the first hit
+    assert all(s["met"] == (s["holdout_error"] <= 1e-3) for s in tight.scores)
+    assert lo.choose_r(Q, t, [1], 1e-12, V0=V0).r is None
+    with pytest.raises(ValueError, match="holdout"):
+        lo.choose_r(Q, t, [2], 0.1, holdout=1.5)
