@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -167,7 +168,8 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
         state_until: float | None = None, output_matrix: np.ndarray | None = None,
         state_map: StateMap | None = None, record_velocity: bool = True,
         energy_every: int | None = None, energy_until: float | None = None, progress: bool = True,
-        integrator: MidpointIntegrator | None = None) -> tuple[Snapshots | None, dict]:
+        integrator: MidpointIntegrator | None = None, checkpoint: str | Path | None = None,
+        checkpoint_every: int = 1000) -> tuple[Snapshots | None, dict]:
     """Integrate the FOM and record snapshots.
 
     Args:
@@ -188,6 +190,11 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
             recorded state sample; 0 disables).
         progress: show a tqdm progress bar on rank 0.
         integrator: reuse an existing integrator (its dt must match).
+        checkpoint: a path prefix; every ``checkpoint_every`` steps each rank writes its part
+            of the run (integrator state and everything recorded so far) atomically to
+            ``<prefix>.rank<i>.npz``. If such files exist when ``run`` starts with the same
+            settings, it resumes from them, and the result equals an unbroken run's. The
+            files are removed when the run completes.
 
     Returns:
         ``(snapshots, info)``: Snapshots on rank 0 (None elsewhere); info has ``seconds``
@@ -220,6 +227,20 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
     ys, y_times = [], []
     v = dolfinx.fem.Function(V)
 
+    ckpt = None if checkpoint is None else Path(f"{checkpoint}.rank{comm.rank}.npz")
+    settings = np.array([dt, t_end, record_every, n_state_steps, n_energy_steps, energy_every,
+                         float(record_velocity), n_owned, comm.size])
+    k_start = 1
+
+    def save_checkpoint(k):
+        tmp = ckpt.with_suffix(".tmp.npz")
+        np.savez(tmp, k=k, settings=settings, q=stepper.q.x.array, p=stepper.p.array,
+                 t=stepper.t, Q=Q, Vel=Vel if Vel is not None else np.zeros(0),
+                 energies=np.array(energies), energy_times=np.array(energy_times),
+                 ys=np.array(ys).reshape(len(ys), -1) if ys else np.zeros((0, 0)),
+                 y_times=np.array(y_times))
+        tmp.replace(ckpt)  # atomic: a kill leaves either the old or the new checkpoint
+
     def record(j):
         Q[:, j] = stepper.q.x.array[:n_owned]
         need_v = record_velocity or (energy_every and j % energy_every == 0)
@@ -247,9 +268,30 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
         bar = tqdm(total=n_steps, desc="FOM", unit="step", mininterval=0.5, leave=False)
     t0 = time.perf_counter()
     seconds_states = 0.0
-    record(0)
-    record_output()
-    for k in range(1, n_steps + 1):
+    resumed = ckpt is not None and comm.allreduce(ckpt.exists(), op=MPI.LAND)
+    if resumed:
+        with np.load(ckpt) as data:
+            if not np.array_equal(data["settings"], settings):
+                raise ValueError(f"checkpoint {ckpt} belongs to a run with other settings; "
+                                 "delete it or change the checkpoint path")
+            k_start = int(data["k"]) + 1
+            stepper.q.x.array[:] = data["q"]
+            stepper.p.array[:] = data["p"]
+            stepper.t = float(data["t"])
+            stepper.steps_taken = k_start - 1
+            Q[:] = data["Q"]
+            if Vel is not None:
+                Vel[:] = data["Vel"]
+            energies[:] = list(data["energies"])
+            energy_times[:] = list(data["energy_times"])
+            ys[:] = list(data["ys"])
+            y_times[:] = list(data["y_times"])
+        if bar is not None:
+            bar.update(k_start - 1)
+    else:
+        record(0)
+        record_output()
+    for k in range(k_start, n_steps + 1):
         stepper.step()
         if k % record_every == 0:
             j = k // record_every
@@ -262,13 +304,18 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
             record_output()
         if bar is not None and k % 1000 == 0:
             bar.update(1000)
+        if ckpt is not None and k % checkpoint_every == 0 and k < n_steps:
+            save_checkpoint(k)
     seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
     if bar is not None:
         bar.close()
+    if ckpt is not None and ckpt.exists():
+        ckpt.unlink()
     energies = np.array(energies)
     drift = float(np.max(np.abs(energies - energies[0])) / abs(energies[0])) if len(energies) > 1 \
         and energies[0] != 0 else float("nan")
     info = {"seconds": seconds, "steps": n_steps, "energy_drift": drift,
+            "resumed_from_step": k_start - 1,
             "seconds_to_state_until": comm.allreduce(seconds_states, op=MPI.MAX),
             "energy": energies, "energy_times": np.array(energy_times)}
     Qg = gather_states(V, Q, state_map)
