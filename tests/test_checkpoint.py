@@ -49,3 +49,17 @@ def test_checkpoint_from_other_settings_is_refused(tmp_path):
     with pytest.raises(ValueError, match="other settings"):
         lo.run(b.system, q0, v0, scene.DT, 0.001, state_map=b.state_map, progress=False,
                checkpoint=prefix)
+
+
+def test_stability_suite(tmp_path):
+    """The documented stability command: L-OpInf stays symmetric and bounded on noisy and
+    badly scaled data, and the two hopeless cases fail with clear messages."""
+    from dolfinx_lopinf import stability
+
+    rows = {r["case"]: r for r in stability.main(["--out", str(tmp_path / "s.json")])}
+    for case, row in rows.items():
+        if case.startswith("beam") and case.endswith("lopinf"):
+            assert row["symmetric"] and row["min_real_eig_K"] > 0 and row["result"] == "bounded"
+    assert rows["beam theta block x 1e8, lopinf"]["test_error"] < 1e-2
+    assert "StepFailed" in rows["sine-Gordon FOM, dt = 5 (too large)"]["result"]
+    assert "numerical rank 2" in rows["rank-deficient training data"]["result"]
