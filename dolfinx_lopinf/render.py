@@ -203,7 +203,6 @@ def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, tit
             warped = g.warp_by_vector("u", factor=magnify)
             plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim,
                              show_scalar_bar=(i == 0 and j == len(labels) - 1))
-            plotter.add_mesh(grid.extract_feature_edges(), color="grey", opacity=0.3)
             text = label if titles is None else f"{label}  {titles[i]}"
             plotter.add_text(text, font_size=9, position="upper_left")
             plotter.camera_position = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]  # top view: lateral bending

@@ -16,4 +16,8 @@ snaps, info = lo.run(b.system, q0, v0, scene.DT, 0.002, state_map=b.state_map,
 basis = MPI.COMM_WORLD.bcast(lo.pod(snaps.Q, 6, blocks=snaps.blocks) if snaps is not None else None)
 rom = lo.galerkin_rom(b.system, basis.V, b.state_map)
 if MPI.COMM_WORLD.rank == 0:
-    np.savez(out, Q=snaps.Q, V=snaps.V, Y=snaps.Y, E=snaps.energy, M=rom.M, K=rom.K)
+    # the non-intrusive operators from the gathered snapshots, as a user would fit them
+    Qh, _, ddQh = lo.derivatives(basis.project(snaps.Q), snaps.times)
+    K_lopinf = lo.infer_mechanical(Qh, None, ddQh, damping=False).K
+    np.savez(out, Q=snaps.Q, V=snaps.V, Y=snaps.Y, E=snaps.energy, M=rom.M, K=rom.K,
+             K_lopinf=K_lopinf, basis=basis.V)
