@@ -17,6 +17,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
+from . import ddt
 from .basis import Basis, pod
 from .ddt import derivatives
 from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,

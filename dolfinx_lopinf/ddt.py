@@ -92,3 +92,34 @@ def derivatives(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.n
         raise ValueError(f"states have {q.shape[-1]} columns but times has {len(times)} entries")
     h = HALF_WIDTH
     return q[..., h:-h], first_derivative(q, dt), second_derivative(q, dt)
+
+
+def variational_data(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Data on which L-OpInf matches the midpoint variational integrator exactly.
+
+    For L = 1/2 |q_t|^2 - 1/2 q^T K q the midpoint discrete Euler-Lagrange equations read
+
+        (q_{k+1} - 2 q_k + q_{k-1}) / dt^2 + K (q_{k+1} + 2 q_k + q_{k-1}) / 4 = 0,
+
+    so fitting ``infer_mechanical(Qbar, None, D2, damping=False)`` with
+
+        Qbar_k = (q_{k+1} + 2 q_k + q_{k-1}) / 4,   D2_k = (q_{k+1} - 2 q_k + q_{k-1}) / dt^2
+
+    identifies the operator of the *discrete* dynamics the snapshots obey (and the ROM is
+    integrated with the same scheme), instead of a continuous-time K from high-order
+    differences, which for stiff modes (dt omega not small) is biased by O((dt omega)^2).
+
+    Args:
+        states: (r, K) samples of a midpoint trajectory at every step (uniform ``times``).
+
+    Returns:
+        ``(Qbar, D2)``, each (r, K-2), for k = 1 .. K-2.
+    """
+    dt = check_uniform_times(times)
+    q = np.asarray(states, dtype=float)
+    if q.shape[-1] != len(times):
+        raise ValueError(f"states have {q.shape[-1]} columns but times has {len(times)} entries")
+    if q.shape[-1] < 3:
+        raise ValueError("the discrete Euler-Lagrange data need at least 3 time samples")
+    check_finite(q, "states")
+    return (q[..., 2:] + 2 * q[..., 1:-1] + q[..., :-2]) / 4, (q[..., 2:] - 2 * q[..., 1:-1] + q[..., :-2]) / dt**2
