@@ -48,11 +48,13 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
     fig, ax = plt.subplots(figsize=(6.8, 4.6))
     labels = sorted({r[0] for r in rows})
     for i, label in enumerate(labels):
-        sel = sorted((r for r in rows if r[0] == label), key=lambda r: r[1])
-        ax.loglog([r[3] for r in sel], [r[2] for r in sel], "o-", color=f"C{i}", label=f"{label}: ROM",
-                  alpha=0.8)
+        sel = sorted((r for r in rows if r[0] == label and r[2] <= 1.0), key=lambda r: r[1])
+        failed = sum(1 for r in rows if r[0] == label and r[2] > 1.0)
+        note = f" ({failed} with error > 1 omitted)" if failed else ""
+        ax.loglog([r[3] for r in sel], [r[2] for r in sel], "o", color=f"C{i}", alpha=0.8,
+                  label=f"{label}: ROM{note}")
         if any(r[4] > 0 for r in sel):
-            ax.loglog([max(r[4], 1e-6) for r in sel], [r[2] for r in sel], "x:", color=f"C{i}",
+            ax.loglog([max(r[4], 1e-6) for r in sel], [r[2] for r in sel], "x", color=f"C{i}",
                       label=f"{label}: inference")
     fom = _fom_seconds(metrics)
     if fom:
