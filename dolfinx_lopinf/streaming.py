@@ -1,0 +1,133 @@
+"""Snapshot POD whose memory does not grow with n x K: snapshots go to disk as they come.
+
+    pod = StreamingPOD(V, capacity=401, weight=M)    # M: PETSc matrix (mass), or None
+    for k in range(...):
+        ... one FOM step ...
+        pod.append(q)                                 # dolfinx Function or owned array
+    basis_local, Qh, lam = pod.compute(r)             # collective
+
+The method of snapshots in the W inner product (W = M gives a mass-orthonormal basis, the
+reduced mass is then exactly I):
+
+    G = Q^T W Q = Psi diag(lam) Psi^T   (K x K),
+    V = Q Psi_r diag(lam_r)^-1/2        (V^T W V = I),
+    Qh = V^T W Q = diag(lam_r)^1/2 Psi_r^T.
+
+Each rank appends its owned dofs q_k and w_k = W q_k (one mat-vec) to two on-disk arrays
+(np.memmap, one row per snapshot). G is summed over column chunks of the stored rows and
+all-reduced; V is formed chunk by chunk too. Peak memory per rank: O(K^2 + chunk K + n_local r)
+for any number of snapshots; disk: 2 n K doubles (deleted by :meth:`close`). Qh and lam are
+identical on every rank; V is returned as this rank's owned rows.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._dolfinx import MPI, dolfinx
+
+
+class StreamingPOD:
+    """Out-of-core method-of-snapshots POD of the states of a dolfinx function space.
+
+    Args:
+        V: the FunctionSpace of the recorded states.
+        capacity: the most snapshots that will be appended (sizes the disk arrays).
+        weight: PETSc matrix W of the inner product (e.g. the mass matrix), or None for the
+            Euclidean one.
+        directory: where the per-rank arrays go (default: a fresh temporary directory).
+        chunk: number of state rows handled at once in :meth:`compute`.
+    """
+
+    def __init__(self, V, capacity: int, *, weight=None, directory=None, chunk: int = 65536):
+        if capacity < 2:
+            raise ValueError(f"capacity must be at least 2 snapshots, got {capacity}")
+        self.V, self.comm = V, V.mesh.comm
+        self.n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+        self.capacity, self.chunk, self.weight = int(capacity), int(chunk), weight
+        base = tempfile.mkdtemp(prefix="lopinf_pod_", dir=directory)
+        self._dir = Path(base)
+        shape = (self.capacity, self.n_owned)
+        name = f"rank{self.comm.rank}"
+        self._Q = np.lib.format.open_memmap(self._dir / f"{name}_q.npy", mode="w+", dtype=float, shape=shape)
+        self._W = (np.lib.format.open_memmap(self._dir / f"{name}_wq.npy", mode="w+", dtype=float, shape=shape)
+                   if weight is not None else None)
+        self._x = weight.createVecRight() if weight is not None else None
+        self._y = weight.createVecLeft() if weight is not None else None
+        self.count = 0
+
+    def append(self, q) -> None:
+        """Store one snapshot: a dolfinx Function on V or this rank's owned values."""
+        if isinstance(q, dolfinx.fem.Function):
+            q = q.x.array[: self.n_owned]
+        q = np.asarray(q, dtype=float)
+        if q.shape != (self.n_owned,):
+            raise ValueError(f"snapshot has shape {q.shape}; this rank owns {self.n_owned} dofs")
+        if self.count >= self.capacity:
+            raise ValueError(f"StreamingPOD is full ({self.capacity} snapshots); raise capacity")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"snapshot {self.count} contains NaN or inf")
+        self._Q[self.count] = q
+        if self.weight is not None:
+            self._x.array[:] = q
+            self.weight.mult(self._x, self._y)
+            self._W[self.count] = self._y.array
+        self.count += 1
+
+    def gram(self) -> np.ndarray:
+        """G = Q^T W Q over the appended snapshots (collective; identical on every rank)."""
+        K = self.count
+        Q = self._Q[:K]
+        W = self._W[:K] if self._W is not None else Q
+        G = np.zeros((K, K))
+        for start in range(0, self.n_owned, self.chunk):
+            cols = slice(start, min(start + self.chunk, self.n_owned))
+            G += np.asarray(Q[:, cols]) @ np.asarray(W[:, cols]).T
+        G = self.comm.allreduce(G, op=MPI.SUM)
+        return 0.5 * (G + G.T)
+
+    def compute(self, r: int, *, rank_rtol: float = 1e-12):
+        """The rank-r POD (collective).
+
+        Returns:
+            ``(basis_local, Qh, lam)``: this rank's owned rows of V (n_owned, r), the reduced
+            coordinates Qh = V^T W Q (r, K) and all eigenvalues of G (descending).
+        """
+        if self.count < 2:
+            raise ValueError(f"POD needs at least 2 snapshots, {self.count} appended")
+        G = self.gram()
+        lam, Psi = np.linalg.eigh(G)
+        order = np.argsort(lam)[::-1]
+        lam, Psi = lam[order], Psi[:, order]
+        # sign convention (so 1 and N ranks agree): the largest entry of each column is > 0
+        Psi *= np.sign(Psi[np.argmax(np.abs(Psi), axis=0), np.arange(Psi.shape[1])])
+        rank = int(np.sum(lam > rank_rtol * max(lam[0], np.finfo(float).tiny)))
+        if r > rank:
+            raise ValueError(f"asked for r = {r} but the {self.count} snapshots have numerical rank {rank}")
+        coef = Psi[:, :r] / np.sqrt(lam[:r])  # V = Q coef
+        Q = self._Q[: self.count]
+        basis = np.empty((self.n_owned, r))
+        for start in range(0, self.n_owned, self.chunk):
+            cols = slice(start, min(start + self.chunk, self.n_owned))
+            basis[cols] = np.asarray(Q[:, cols]).T @ coef
+        Qh = np.sqrt(lam[:r])[:, None] * Psi[:, :r].T
+        return basis, Qh, lam
+
+    @property
+    def disk_bytes(self) -> int:
+        return (2 if self._W is not None else 1) * self.count * self.n_owned * 8
+
+    def close(self) -> None:
+        """Delete the on-disk arrays."""
+        self._Q = self._W = None
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
