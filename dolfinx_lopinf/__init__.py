@@ -19,7 +19,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
 
 from . import ddt
 from .basis import Basis, pod
-from .ddt import derivatives
+from .ddt import derivatives, newmark_data, variational_data
 from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
                         infer_wave)
 from .metrics import energy_error, relative_error
@@ -50,5 +50,5 @@ def __getattr__(name):
 
 
 __all__ = ["Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
-           "derivatives", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
+           "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
            "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

@@ -123,3 +123,41 @@ def variational_data(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray,
         raise ValueError("the discrete Euler-Lagrange data need at least 3 time samples")
     check_finite(q, "states")
     return (q[..., 2:] + 2 * q[..., 1:-1] + q[..., :-2]) / 4, (q[..., 2:] - 2 * q[..., 1:-1] + q[..., :-2]) / dt**2
+
+
+def newmark_data(states: np.ndarray, times: np.ndarray, inputs: np.ndarray | None = None):
+    """Data on which L-OpInf matches Newmark (gamma = 1/2, beta = 1/4) trajectories exactly.
+
+    Eliminating velocities and accelerations from the average-acceleration recurrences of
+    M q_tt + C q_t + K q = B u (uniform dt) leaves a three-point relation between states,
+
+        M D2_k + C D1_k + K Qbar_k = B Ubar_k,
+        D2_k = (q_{k+1} - 2 q_k + q_{k-1}) / dt^2,   D1_k = (q_{k+1} - q_{k-1}) / (2 dt),
+        Qbar_k = (q_{k+1} + 2 q_k + q_{k-1}) / 4,    Ubar_k = (u_{k+1} + 2 u_k + u_{k-1}) / 4,
+
+    (for C = 0 and u = 0 it is the midpoint rule's discrete Euler-Lagrange equation, see
+    :func:`variational_data`). Fitting ``infer_mechanical(Qbar, D1, D2, Ubar)`` identifies the
+    operators of the discrete dynamics the FOM snapshots obey, and a ROM integrated with
+    Newmark reproduces them; finite-difference derivatives instead carry an O((dt omega)^2)
+    bias for modes that the time step does not resolve.
+
+    Args:
+        states: (r, K) states at every step of a uniform grid ``times``.
+        inputs: optional (m, K) inputs on the same grid.
+
+    Returns:
+        ``(Qbar, D1, D2, Ubar)``, each with K - 2 columns (k = 1 .. K-2); Ubar is None
+        without inputs.
+    """
+    Qbar, D2 = variational_data(states, times)
+    dt = times[1] - times[0]
+    q = np.asarray(states, dtype=float)
+    D1 = (q[..., 2:] - q[..., :-2]) / (2 * dt)
+    Ubar = None
+    if inputs is not None:
+        u = np.atleast_2d(np.asarray(inputs, dtype=float))
+        if u.shape[-1] != q.shape[-1]:
+            raise ValueError(f"inputs have {u.shape[-1]} columns but states have {q.shape[-1]}")
+        check_finite(u, "inputs")
+        Ubar = (u[:, 2:] + 2 * u[:, 1:-1] + u[:, :-2]) / 4
+    return Qbar, D1, D2, Ubar
