@@ -59,6 +59,7 @@ class StreamingPOD:
         self._x = weight.createVecRight() if weight is not None else None
         self._y = weight.createVecLeft() if weight is not None else None
         self.count = 0
+        self._eig = None
 
     def append(self, q) -> None:
         """Store one snapshot: a dolfinx Function on V or this rank's owned values."""
@@ -90,24 +91,21 @@ class StreamingPOD:
         G = self.comm.allreduce(G, op=MPI.SUM)
         return 0.5 * (G + G.T)
 
-    def compute(self, r: int, *, rank_rtol: float = 1e-12):
-        """The rank-r POD (collective).
+    def compute(self, r: int, *, rank_rtol: float = 1e-7):
+        """The rank-r POD (collective). Singular values sqrt(lam) below ``rank_rtol`` times the
+        largest count as zero: the Gram matrix resolves lam to ~1e-16 lam_max, so singular
+        values below ~1e-8 of the largest are not known.
 
         Returns:
             ``(basis_local, Qh, lam)``: this rank's owned rows of V (n_owned, r), the reduced
             coordinates Qh = V^T W Q (r, K) and all eigenvalues of G (descending).
         """
-        if self.count < 2:
-            raise ValueError(f"POD needs at least 2 snapshots, {self.count} appended")
-        G = self.gram()
-        lam, Psi = np.linalg.eigh(G)
-        order = np.argsort(lam)[::-1]
-        lam, Psi = lam[order], Psi[:, order]
-        # sign convention (so 1 and N ranks agree): the largest entry of each column is > 0
-        Psi *= np.sign(Psi[np.argmax(np.abs(Psi), axis=0), np.arange(Psi.shape[1])])
-        rank = int(np.sum(lam > rank_rtol * max(lam[0], np.finfo(float).tiny)))
+        lam, Psi = self._eigen()
+        sv = np.sqrt(np.maximum(lam, 0.0))
+        rank = self.numerical_rank(rank_rtol)
         if r > rank:
-            raise ValueError(f"asked for r = {r} but the {self.count} snapshots have numerical rank {rank}")
+            raise ValueError(f"asked for r = {r} but the {self.count} snapshots have numerical rank "
+                             f"{rank} (singular values {sv[: r + 1]}); lower r or record richer data")
         coef = Psi[:, :r] / np.sqrt(lam[:r])  # V = Q coef
         Q = self._Q[: self.count]
         basis = np.empty((self.n_owned, r))
@@ -116,6 +114,24 @@ class StreamingPOD:
             basis[cols] = np.asarray(Q[:, cols]).T @ coef
         Qh = np.sqrt(lam[:r])[:, None] * Psi[:, :r].T
         return basis, Qh, lam
+
+    def _eigen(self):
+        """Eigenpairs of G, descending, cached until the next append (collective)."""
+        if self.count < 2:
+            raise ValueError(f"POD needs at least 2 snapshots, {self.count} appended")
+        if self._eig is None or self._eig[0] != self.count:
+            lam, Psi = np.linalg.eigh(self.gram())
+            order = np.argsort(lam)[::-1]
+            lam, Psi = lam[order], Psi[:, order]
+            # sign convention (so 1 and N ranks agree): the largest entry of each column is > 0
+            Psi *= np.sign(Psi[np.argmax(np.abs(Psi), axis=0), np.arange(Psi.shape[1])])
+            self._eig = (self.count, lam, Psi)
+        return self._eig[1], self._eig[2]
+
+    def numerical_rank(self, rank_rtol: float = 1e-7) -> int:
+        """Number of singular values sqrt(lam) above ``rank_rtol`` times the largest (collective)."""
+        sv = np.sqrt(np.maximum(self._eigen()[0], 0.0))
+        return int(np.sum(sv > rank_rtol * max(sv[0], np.finfo(float).tiny)))
 
     @property
     def disk_bytes(self) -> int:
