@@ -10,7 +10,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick demo-existing bench test test-fast venv clean
+.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench test test-fast venv clean
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -31,6 +31,13 @@ demo-quick: venv
 
 demo-existing: venv
 	$(PY) demos/existing_code.py --out $(OUT)/existing_code
+
+fishtail: venv
+	$(PY) demos/fishtail.py --size default --train sigmoid --out $(OUT)/fishtail
+
+# >= 779,232 dofs, 2,000 Newmark steps on 2 ranks (MUMPS); the sine input only
+fishtail-large: venv
+	$(VENV)/bin/mpiexec -n 2 $(PY) demos/fishtail.py --size large --inputs sine --out $(OUT)/fishtail_large
 
 bench: venv
 	$(PY) -m dolfinx_lopinf.benchmark --out $(OUT)/benchmark_inference.json

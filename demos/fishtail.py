@@ -19,57 +19,71 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf import render
 from dolfinx_lopinf._dolfinx import MPI
 from dolfinx_lopinf.fom import StateMap, gather_states, output_matrix_in_state
-from dolfinx_lopinf.integrators import NewmarkIntegrator
+from dolfinx_lopinf.integrators import NewmarkIntegrator, rigid_body_modes
+from dolfinx_lopinf.streaming import StreamingPOD
 from dolfinx_lopinf.intrusive import reduced_matrix
 from dolfinx_lopinf.scenes import fishtail as scene
 
-SIZES = {"small": 0.012, "default": 0.007, "large": 0.0028}
 TRAIN_WINDOW = {"sine": 0.4, "sigmoid": 1.0}
 
 
-def run_fom(tail, nm, u_fn, t_end, t_keep, comm, snap_steps=()):
-    """Newmark to t_end; keep owned states to t_keep (and at ``snap_steps``, for renders),
-    outputs and energy every step."""
+def run_fom(tail, nm, u_fn, t_end, comm, *, spod=None, t_keep=0.0, snap_steps=()):
+    """Newmark to t_end. States up to t_keep go to ``spod`` (an on-disk StreamingPOD, so
+    memory does not grow with n x K); the POI output and the energy are kept every step, full
+    fields only at ``snap_steps`` (for the renders)."""
     dt = scene.DT
     n_steps = int(round(t_end / dt))
-    n_keep = int(round(t_keep / dt))
-    n_owned = tail.system.V.dofmap.index_map.size_local * 3
-    Q = np.empty((n_owned, n_keep + 1))
+    n_keep = int(round(t_keep / dt)) if spod is not None else -1
     Y, E = np.empty(n_steps + 1), np.empty(n_steps + 1)
     snaps = {}
     nm.initialize(tail.chamber_pressures(float(u_fn(0.0))))
-    Q[:, 0] = 0.0
+    if n_keep >= 0:
+        spod.append(nm.q)
     Y[0], E[0] = 0.0, 0.0
     t0 = time.perf_counter()
-    for k in range(1, n_steps + 1):
+    for k in tqdm(range(1, n_steps + 1), disable=comm.rank != 0 or not sys.stderr.isatty(),
+                  desc="FOM", unit="step"):
         nm.step(tail.chamber_pressures(float(u_fn(k * dt))))
         if k <= n_keep:
-            Q[:, k] = nm.q.x.array[:n_owned]
+            spod.append(nm.q)
         if k in snap_steps:
             snaps[k] = nm.q.x.array.copy()
         Y[k] = comm.allreduce(float((tail.output_matrix @ nm.q.x.array)[0]))
         E[k] = nm.energy()
     seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
-    run_fom.snapshots = snaps
-    return Q, Y, E, seconds
+    return Y, E, seconds, snaps
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="small mesh, T = 0.6 s, r in {2, 4}")
-    parser.add_argument("--size", choices=sorted(SIZES), default="default")
+    parser.add_argument("--size", choices=sorted(scene.SIZES), default="default")
     parser.add_argument("--out", default="results/fishtail")
     parser.add_argument("--train", choices=sorted(TRAIN_WINDOW), default="sine")
     parser.add_argument("--basis", choices=["mass", "euclidean"], default="mass")
+    parser.add_argument("--inputs", default=None,
+                        help="comma-separated inputs to simulate (default: all four; the training "
+                             "input is always included)")
+    parser.add_argument("--solver", choices=["direct", "cg"], default="direct",
+                        help="Newmark solve: MUMPS LU (default) or CG + GAMG with rigid-body modes")
+    parser.add_argument("--data", choices=["newmark", "fd"], default="newmark",
+                        help="newmark: fit the three-point relation of Newmark snapshots (default); "
+                             "fd: 8th-order finite-difference derivatives")
+    parser.add_argument("--scratch", default=None, help="directory for the on-disk training snapshots")
+    parser.add_argument("--hull-density", choices=sorted(scene.HULL_DENSITIES), default="paper",
+                        help="silicone: 1.07e3 kg/m^3; paper: 1.07e-3 kg/m^3 as the paper prints it")
     args = parser.parse_args(argv)
     comm = MPI.COMM_WORLD
     out = Path(args.out)
@@ -77,13 +91,21 @@ def main(argv=None):
     t_end = 0.6 if args.quick else scene.T_END
     t_train = TRAIN_WINDOW[args.train]
     inputs = ["sine", "step"] if args.quick else ["sine", "sigmoid", "ramp", "step"]
+    if args.inputs:
+        inputs = args.inputs.split(",")
+        unknown = sorted(set(inputs) - set(scene.INPUTS))
+        if unknown:
+            parser.error(f"unknown inputs {unknown}; choose from {sorted(scene.INPUTS)}")
+    inputs = [args.train] + [name for name in inputs if name != args.train]  # training run first
     r_values = [2, 4] if args.quick else [2, 4, 6, 8, 10]
     dt = scene.DT
 
     t0 = time.perf_counter()
-    tail = scene.build(SIZES[size], comm)
+    tail = scene.build(scene.SIZES[size], comm, hull_density=args.hull_density)
     V = tail.system.V
-    nm = NewmarkIntegrator(tail.system, dt, rayleigh=scene.RAYLEIGH, input_forms=tail.input_forms)
+    nm = NewmarkIntegrator(tail.system, dt, rayleigh=scene.RAYLEIGH, input_forms=tail.input_forms,
+                           solver=args.solver,
+                           near_nullspace=rigid_body_modes(V) if args.solver == "cg" else None)
     setup_s = time.perf_counter() - t0
     n_dofs = V.dofmap.index_map.size_global * 3
     if comm.rank == 0:
@@ -91,34 +113,47 @@ def main(argv=None):
     state_map = StateMap.from_coordinates(V)
     fom = {}
     render_input = inputs[-1]  # an unseen input
-    render_times = [0.15, 0.3, t_end] if args.quick else [0.15, 0.5, 1.0, 2.0]
-    render_steps = [int(round(t / dt)) for t in render_times]
+    # fields kept for the renders: the first 50 ms after the input starts (where the tip's
+    # extremes are picked from the output) and the GIF frames
+    n_end = int(round(t_end / dt))
+    early = list(range(int(round(0.1 / dt)), int(round(0.15 / dt)) + 1))
     gif_steps = list(range(int(round(t_end / dt)) // 40, int(round(t_end / dt)) + 1, int(round(t_end / dt)) // 40))
+    # only the training run's states are stored, on disk, in the POD inner product:
+    # W = M gives V^T M V = I, so the reduced mass that L-OpInf fixes to I is exact (it uses
+    # the FOM mass matrix; --basis euclidean is the paper's black-box POD).
+    n_train = int(round(t_train / dt)) + 1
+    spod = StreamingPOD(V, n_train, weight=nm.M if args.basis == "mass" else None,
+                        directory=args.scratch)
     for name in inputs:
-        keep = t_train if name == args.train else 0.0
-        steps = set(render_steps + gif_steps) if name == render_input else ()
-        Q, Y, E, seconds = run_fom(tail, nm, scene.INPUTS[name], t_end, keep, comm, snap_steps=steps)
-        fom[name] = dict(Q=gather_states(V, Q, state_map) if keep else None, Y=Y, E=E, seconds=seconds,
-                         fields=run_fom.snapshots)
+        steps = set(early + gif_steps) if name == render_input else ()
+        Y, E, seconds, fields = run_fom(tail, nm, scene.INPUTS[name], t_end, comm,
+                                        spod=spod if name == args.train else None,
+                                        t_keep=t_train, snap_steps=steps)
+        if name == render_input:  # tip extremes, mid-run and the end; drop the other fields
+            render_steps = [max(early, key=lambda k: Y[k]), min(early, key=lambda k: Y[k]),
+                            n_end // 2, n_end]
+            fields = {k: v for k, v in fields.items() if k in set(render_steps + gif_steps)}
+        fom[name] = dict(Y=Y, E=E, seconds=seconds, fields=fields)
+        if comm.rank == 0:  # keep the FOM's outputs whatever happens later
+            out.mkdir(parents=True, exist_ok=True)
+            np.savez(out / f"fom_{name}.npz", t=dt * np.arange(len(Y)), Y=Y, E=E, seconds=seconds)
         if comm.rank == 0:
             print(f"FOM {name}: {int(round(t_end / dt))} steps in {seconds:.1f} s, "
-                  f"max |y| = {np.abs(Y).max():.3e} m")
+                  f"max |y| = {np.abs(Y).max():.3e} m", flush=True)
+        if name == args.train:  # basis right away: a training run too poor for r fails fast
+            t0 = time.perf_counter()
+            rank = spod.numerical_rank()
+            if rank < max(r_values) and comm.rank == 0:
+                print(f"the training snapshots have numerical rank {rank}: r <= {rank} only")
+            r_values = [r for r in r_values if r <= rank]
+            basis_local, Qh_full, pod_lam = spod.compute(max(r_values))
+            snapshot_disk = comm.allreduce(spod.disk_bytes)
+            spod.close()
+            V_all = comm.bcast(gather_states(V, basis_local, state_map))  # n x r_max, not n x K
+            pod_s = time.perf_counter() - t0
 
-    # --- basis and operators from the training arrays only ---------------------------------
-    # Mass-orthonormal POD by the method of snapshots (V^T M V = I, so the reduced mass that
-    # L-OpInf fixes to I is exact): C = Q^T M Q, V = Q Psi diag(lambda)^-1/2. It uses the
-    # FOM mass matrix (a black box would not give it); --basis euclidean is the paper's POD.
+    # --- operators from the training run only ------------------------------------------------
     train = fom[args.train]
-    Q_train = comm.bcast(train["Q"] if comm.rank == 0 else None)
-    if args.basis == "mass":
-        MQ = apply_matrix(nm.M, V, Q_train, state_map)
-        lam, Psi = np.linalg.eigh(Q_train.T @ MQ)
-        order = np.argsort(lam)[::-1][: max(r_values)]
-        V_all = Q_train @ Psi[:, order] / np.sqrt(lam[order])
-        Qh_full = V_all.T @ MQ
-    else:
-        V_all = lo.pod(Q_train, max(r_values)).V
-        Qh_full = V_all.T @ Q_train
     rows = []
     rom_plot = {}
     for r in r_values:
@@ -131,12 +166,16 @@ def main(argv=None):
         Eg = output_matrix_in_state(V, tail.output_matrix, state_map) @ Vr  # true POI functional
         if comm.rank != 0:
             continue
-        times = dt * np.arange(Q_train.shape[1])
+        times = dt * np.arange(Qh_full.shape[1])
         u_train = scene.INPUTS[args.train](times)
         Qh_all = Qh_full[:r]
-        Qh, dQh, ddQh = lo.derivatives(Qh_all, times)
         t_fit = time.perf_counter()
-        ops = lo.infer_mechanical(Qh, dQh, ddQh, u_train[None, 4:-4])
+        if args.data == "newmark":  # the three-point relation Newmark snapshots obey exactly
+            Qbar, D1, D2, Ubar = lo.newmark_data(Qh_all, times, u_train[None])
+            ops = lo.infer_mechanical(Qbar, D1, D2, Ubar)
+        else:  # 8th-order finite differences (continuous-time operators)
+            Qh, dQh, ddQh = lo.derivatives(Qh_all, times)
+            ops = lo.infer_mechanical(Qh, dQh, ddQh, u_train[None, 4:-4])
         Eh = lo.infer_output(Qh_all, train["Y"][None, : len(times)])
         infer_s = time.perf_counter() - t_fit
         lopinf = lo.LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=Eh, scheme="newmark")
@@ -149,38 +188,52 @@ def main(argv=None):
                 tr = rom.simulate(np.zeros(r), np.zeros(r), dt, n, inputs=lambda t: np.array([scene.INPUTS[name](t)]))
                 y_fom = fom[name]["Y"]
                 row["output_errors"][name] = lo.relative_error(y_fom, tr.Y[0])
+                row.setdefault("trajectories", {})[name] = tr.Y[0]
                 row["rom_seconds"][name] = tr.seconds
                 e_rom = 0.5 * np.einsum("ik,ij,jk->k", tr.Vh, Mg, tr.Vh) + 0.5 * np.einsum("ik,ij,jk->k", tr.Qh, Kg, tr.Qh)
                 row.setdefault("energy_errors", {})[name] = float(
                     np.abs(e_rom - fom[name]["E"]).max() / np.abs(fom[name]["E"]).max())
                 if r == r_values[-1] or r == 2:
-                    rom_plot[(method, r, name)] = (tr, Vr)
+                    rom_plot[(method, r, name)] = (tr, Vr, e_rom)
             row["train_error"] = row["output_errors"][args.train]
-            row["test_error"] = max(v for k, v in row["output_errors"].items() if k != args.train)
+            unseen = [v for k, v in row["output_errors"].items() if k != args.train]
+            if unseen:
+                row["test_error"] = max(unseen)
+            else:  # one input only: the training input after its training window
+                n_train_steps = int(round(t_train / dt))
+                row["test_error"] = lo.relative_error(fom[args.train]["Y"][n_train_steps:],
+                                                      row["trajectories"][args.train][n_train_steps:])
+            row.pop("trajectories")
             row["stable"] = bool(all(np.isfinite(v) for v in row["output_errors"].values()))
             if method == "lopinf":
                 row.update(min_eig_K=ops.certificate["min_eig_K"], min_eig_C=ops.certificate["min_eig_C"],
                            solver=ops.certificate["solver"])
             rows.append(row)
+    # peak resident memory of each rank (ru_maxrss is in KiB on Linux)
+    peak_rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
     if comm.rank != 0:
         return None
     out.mkdir(parents=True, exist_ok=True)
     metrics = {"scene": "fishtail", "size": size, "n_dofs": int(n_dofs), "dt": dt,
                "t_train": t_train, "train_input": args.train, "t_end": t_end,
                "fom_seconds": {k: v["seconds"] for k, v in fom.items()},
-               "fom_setup_seconds": setup_s, "u_pre": 0.0, "basis": args.basis,
-               "roms": rows}
+               "fom_setup_seconds": setup_s, "pod_seconds": pod_s,
+               "snapshot_disk_bytes": int(snapshot_disk), "n_ranks": comm.size,
+               "peak_rss_bytes_per_rank": peak_rss, "u_pre": 0.0, "basis": args.basis, "data": args.data,
+               "hull_density": scene.HULL_DENSITIES[args.hull_density],
+               "pod_singular_values": np.sqrt(np.maximum(pod_lam[:20], 0)).tolist(), "roms": rows}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     t = dt * np.arange(int(round(t_end / dt)) + 1)
     for name in inputs:
-        series = {"FOM": fom[name]["Y"]}
-        for (method, r, nm_), tr in rom_plot.items():
-            if nm_ == name and method == "lopinf":
-                series[f"L-OpInf r={r}"] = tr[0].Y[0]
-        render.curves(out / f"poi_{name}.png", t, series, ylabel="tip displacement x [m]",
-                      vline=t_train if name == args.train else None,
-                      title=f"{name} input" + (" (training input)" if name == args.train else " (unseen)"),
-                      colors=["C7", "C0", "C1", "C2"])
+        outputs, energies = {"FOM": fom[name]["Y"]}, {"FOM": fom[name]["E"]}
+        for (method, r, nm_), (tr, _, e_rom) in sorted(rom_plot.items(), key=lambda kv: (kv[0][0] != "lopinf", kv[0][1])):
+            if nm_ == name:
+                label = f"{'L-OpInf' if method == 'lopinf' else 'intrusive'} r={r}"
+                outputs[label], energies[label] = tr.Y[0], e_rom
+        render.output_error_energy(out / f"poi_{name}.png", t, outputs, energies,
+                                   ylabel="tip displacement x [m]",
+                                   vline=t_train if name == args.train else None,
+                                   title=f"{name} input" + (" (training input)" if name == args.train else " (unseen)"))
     if comm.size == 1:
         n_boundary, n_points = _renders(out, V, state_map, fom[render_input]["fields"], rom_plot,
                                         render_input, render_steps, gif_steps, r_values[-1], dt)
@@ -214,7 +267,7 @@ def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps,
     inverse = np.empty_like(state_map.order)
     inverse[state_map.order] = np.arange(len(state_map.order))
     rows = inverse[(3 * pts[:, None] + np.arange(3)).ravel()]  # their state rows
-    tr, Vr = rom_plot[("lopinf", r, name)]
+    tr, Vr, _ = rom_plot[("lopinf", r, name)]
     V_boundary = Vr[rows]  # (3 * boundary points, r): all the picture needs
 
     def rom_field(k):
@@ -231,30 +284,12 @@ def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps,
     magnify = 0.03 / peak  # largest displacement drawn as 3 cm
     frames = [{"FOM": fom_field(k), f"L-OpInf r={r}": rom_field(k)} for k in render_steps]
     render.deformed_side_by_side(out / f"deformed_{name}.png", volume, frames, magnify=magnify,
-                                 titles=[f"t = {k * dt:.2f} s (x{magnify:.0f})" for k in render_steps])
+                                 titles=[f"t = {k * dt:.3f} s (x{magnify:.1f})" for k in render_steps])
     render.animation(out / f"deformed_{name}.gif", volume,
                      {"FOM": [fom_field(k) for k in gif_steps],
                       f"L-OpInf r={r}": [rom_field(k) for k in gif_steps]},
                      magnify=magnify, titles=[f"t = {k * dt:.2f} s" for k in gif_steps])
     return len(pts), volume.n_points
-
-
-def apply_matrix(A, V, X, state_map):
-    """A X for a PETSc matrix and state-coordinate columns X (n, K) available on every rank;
-    the result (n, K) in state coordinates on every rank."""
-    from dolfinx_lopinf.fom import owned_global_dofs
-
-    comm = V.mesh.comm
-    W = state_map.to_dofs(X)
-    owned = owned_global_dofs(V)
-    x, y = A.createVecRight(), A.createVecLeft()
-    out = np.zeros_like(W)
-    for j in range(W.shape[1]):
-        x.array[:] = W[owned, j]
-        A.mult(x, y)
-        out[owned, j] = y.array
-    out = comm.allreduce(out)
-    return out[state_map.order] / state_map.scale[:, None]
 
 
 def _reduced_input(nm, V, basis, state_map, comm):
@@ -268,4 +303,12 @@ def _reduced_input(nm, V, basis, state_map, comm):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except BaseException:
+        if MPI.COMM_WORLD.size > 1:  # one rank failing must not leave the others waiting
+            import traceback
+
+            traceback.print_exc()
+            MPI.COMM_WORLD.Abort(1)
+        raise

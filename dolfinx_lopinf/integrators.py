@@ -30,14 +30,17 @@ fem = dolfinx.fem
 fpetsc = dolfinx.fem.petsc
 
 
-def _direct_solver(A, comm, prefix: str, options: dict | None):
-    """KSP with a direct factorisation: MUMPS when PETSc has it, PETSc's own LU otherwise."""
+def _direct_solver(A, comm, prefix: str, options: dict | None, *, spd: bool = False):
+    """KSP with a direct factorisation: MUMPS when PETSc has it, PETSc's own otherwise.
+    ``spd``: A is symmetric positive definite - Cholesky (LDL^T, half the memory of LU)."""
     ksp = PETSc.KSP().create(comm)
+    if spd:
+        A.setOption(PETSc.Mat.Option.SPD, True)
     ksp.setOperators(A)
     ksp.setOptionsPrefix(prefix)
     ksp.setType("preonly")
     pc = ksp.getPC()
-    pc.setType("lu")
+    pc.setType("cholesky" if spd else "lu")
     pc.setFactorSolverType("mumps")
     opts = PETSc.Options()
     for key, value in (options or {}).items():
@@ -316,7 +319,8 @@ class NewmarkIntegrator:
         A.axpy(0.25 * self.dt**2, K)
         self.M, self.K, self.C, self.A = M, K, C, A
         if solver == "direct":
-            self._ksp = _direct_solver(A, comm, prefix, petsc_options)
+            # A = M + dt/2 C + dt^2/4 K is SPD: Cholesky
+            self._ksp = _direct_solver(A, comm, prefix, petsc_options, spd=True)
         else:
             if near_nullspace is not None:
                 A.setNearNullSpace(near_nullspace)
@@ -356,10 +360,20 @@ class NewmarkIntegrator:
             f.x.array[:] = 0.0
         if self.inputs:
             rhs = self._load(u0 if u0 is not None else np.zeros(len(self.inputs)), self._rhs)
-            ksp = _direct_solver(self.M, self.system.V.mesh.comm, "lopinf_newmark_mass_", None)
-            ksp.solve(rhs, self.a.x.petsc_vec)
-            self.a.x.scatter_forward()
-            ksp.destroy()
+            if rhs.norm() > 0:
+                # CG + Jacobi on the mass matrix (no second factorisation: on large meshes the
+                # memory of one is all there is)
+                ksp = PETSc.KSP().create(self.system.V.mesh.comm)
+                ksp.setOperators(self.M)
+                ksp.setType("cg")
+                ksp.getPC().setType("jacobi")
+                ksp.setTolerances(rtol=1e-13, atol=0.0, max_it=5000)
+                ksp.solve(rhs, self.a.x.petsc_vec)
+                if ksp.getConvergedReason() <= 0:
+                    raise StepFailed(f"initial acceleration: CG on the mass matrix did not converge "
+                                     f"(reason {ksp.getConvergedReason()})")
+                self.a.x.scatter_forward()
+                ksp.destroy()
         self.t = 0.0
 
     def step(self, u1):
@@ -397,3 +411,31 @@ class NewmarkIntegrator:
         e = 0.5 * v.dot(tmp)
         self.K.mult(q, tmp)
         return float(e + 0.5 * q.dot(tmp))
+
+
+def rigid_body_modes(V):
+    """The six rigid-body modes of a 3D vector space as a PETSc NullSpace (orthonormalised):
+    the near-nullspace GAMG needs to coarsen elasticity well."""
+    bs = V.dofmap.index_map_bs
+    if bs != 3 or V.mesh.geometry.dim != 3:
+        raise ValueError("rigid_body_modes needs a 3D vector function space (block size 3)")
+    n_own = V.dofmap.index_map.size_local
+    x = V.tabulate_dof_coordinates()[:n_own]
+    modes = np.zeros((6, n_own, 3))
+    for i in range(3):
+        modes[i, :, i] = 1.0
+    modes[3, :, 0], modes[3, :, 1] = -x[:, 1], x[:, 0]
+    modes[4, :, 0], modes[4, :, 2] = x[:, 2], -x[:, 0]
+    modes[5, :, 2], modes[5, :, 1] = x[:, 1], -x[:, 2]
+    vecs = []
+    comm = V.mesh.comm
+    for m in modes.reshape(6, -1):
+        v = PETSc.Vec().createMPI((len(m), PETSc.DECIDE), bsize=3, comm=comm)
+        v.array[:] = m
+        vecs.append(v)
+    # modified Gram-Schmidt (collective dot products)
+    for i, v in enumerate(vecs):
+        for w in vecs[:i]:
+            v.axpy(-v.dot(w), w)
+        v.scale(1.0 / v.norm())
+    return PETSc.NullSpace().create(vectors=vecs, comm=comm)

@@ -202,6 +202,8 @@ def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, tit
             g.point_data["u"] = frame[label]
             g.point_data["|u| [m]"] = np.linalg.norm(frame[label], axis=1)
             warped = g.warp_by_vector("u", factor=magnify)
+            plotter.add_mesh(grid.extract_surface(algorithm=None).extract_feature_edges(), color="grey",
+                             line_width=1, opacity=0.5)  # undeformed outline
             plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim,
                              show_scalar_bar=(i == 0 and j == len(labels) - 1))
             text = label if titles is None else f"{label}  {titles[i]}"
@@ -229,6 +231,8 @@ def animation(path, grid, series: dict, *, magnify: float, fps: int = 10, titles
         g.point_data["u"] = series[label][0]
         g.point_data["|u| [m]"] = np.linalg.norm(series[label][0], axis=1)
         warped = g.warp_by_vector("u", factor=magnify)
+        plotter.add_mesh(grid.extract_surface(algorithm=None).extract_feature_edges(), color="grey",
+                         line_width=1, opacity=0.5)  # undeformed outline
         plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim, show_scalar_bar=False)
         plotter.add_text(label, font_size=9, name=f"title{j}")
         plotter.camera_position = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]
@@ -245,3 +249,35 @@ def animation(path, grid, series: dict, *, magnify: float, fps: int = 10, titles
         plotter.write_frame()
     plotter.close()
     return path
+
+
+def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, ylabel: str,
+                        title: str = "", vline: float | None = None) -> Path:
+    """Three stacked panels against time: outputs (label -> y; the first is the reference),
+    each ROM's error |y - y_ref| / max|y_ref| (log), and energies (label -> E; first = reference)."""
+    plt = _pyplot()
+    colors = ["C7", "C0", "C3", "C2", "C1"]
+    fig, axes = plt.subplots(3, 1, figsize=(7.5, 7.5), sharex=True)
+    ref = np.asarray(next(iter(outputs.values())), dtype=float)
+    scale = max(np.abs(ref).max(), 1e-300)
+    for i, (label, y) in enumerate(outputs.items()):
+        axes[0].plot(t, y, lw=1.0 if i else 1.8, color=colors[i % 5], label=label)
+        if i:
+            err = np.abs(np.asarray(y) - ref) / scale
+            axes[1].semilogy(t, np.where(err > 0, err, np.nan), lw=0.9, color=colors[i % 5], label=label)
+    for i, (label, e) in enumerate(energies.items()):
+        axes[2].plot(t, e, lw=1.0 if i else 1.8, color=colors[i % 5], label=label)
+    axes[0].set_ylabel(ylabel)
+    axes[1].set_ylabel("|y - y_FOM| / max|y_FOM|")
+    axes[2].set_ylabel("energy [J]")
+    axes[2].set_xlabel("t [s]")
+    for ax in axes:
+        if vline is not None:
+            ax.axvline(vline, color="k", ls=":", lw=1)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+    axes[0].set_title(title + ("  (dotted: end of training)" if vline is not None else ""))
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)

@@ -1,5 +1,5 @@
-"""Fishtail scene (work in progress for the full demo): geometry, two materials, chamber
-pressure inputs, Newmark FOM."""
+"""Fishtail scene: geometry, two materials, chamber pressure inputs, Newmark FOM, rigid-body
+modes for GAMG, and the quick demo end to end."""
 
 import numpy as np
 import pytest
@@ -60,6 +60,55 @@ def test_fishtail_demo_quick(tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     lop = [r for r in m["roms"] if r["method"] == "lopinf"]
     assert all(r["min_eig_K"] > 0 and r["min_eig_C"] > 0 and r["stable"] for r in lop)
-    best = min(r["output_errors"]["sine"] for r in lop)
-    assert best < 2e-2  # training input, short horizon
+    by_r = {r["r"]: r["output_errors"] for r in lop}
+    assert by_r[2]["sine"] < 1e-2  # the paper's level on the training input (measured 4e-4)
+    assert by_r[4]["step"] < 5e-2  # unseen step input
+    assert m["data"] == "newmark" and m["hull_density"] == ft.HULL_DENSITIES["paper"]
+    assert m["snapshot_disk_bytes"] == 2 * 401 * 8 * m["n_dofs"]  # training states + M q on disk
     assert (tmp_path / "poi_step.png").stat().st_size > 10_000
+
+
+def test_rigid_body_modes_span_the_kernel_of_free_elasticity():
+    from dolfinx_lopinf._dolfinx import dolfinx, ufl
+    import dolfinx.fem.petsc
+    from dolfinx_lopinf.integrators import rigid_body_modes
+
+    msh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 0.5, 0.3]], [4, 3, 2])
+    V = dolfinx.fem.functionspace(msh, ("Lagrange", 2, (3,)))
+    u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    eps = lambda w: ufl.sym(ufl.grad(w))  # noqa: E731
+    K = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(
+        ufl.inner(2 * eps(u) + ufl.tr(eps(u)) * ufl.Identity(3), eps(v)) * ufl.dx))
+    K.assemble()
+    ns = rigid_body_modes(V)
+    vecs = ns.getVecs()
+    assert len(vecs) == 6
+    y = K.createVecLeft()
+    for i, a in enumerate(vecs):
+        assert abs(a.norm() - 1) < 1e-12
+        K.mult(a, y)
+        assert y.norm() < 1e-10 * K.norm()
+        for b in vecs[:i]:
+            assert abs(a.dot(b)) < 1e-12
+    assert ns.test(K)
+
+
+def test_hull_density_is_checked():
+    with pytest.raises(ValueError, match="hull_density"):
+        ft.build(0.012, hull_density="water")
+    with pytest.raises(ValueError, match="positive"):
+        ft.build(0.012, hull_density=-1.0)
+
+
+def test_newmark_initial_acceleration_is_consistent(small):
+    """initialize(u0) with a non-zero input solves M a0 = B u0 (CG on the mass matrix)."""
+    nm = NewmarkIntegrator(small.system, ft.DT, rayleigh=ft.RAYLEIGH, input_forms=small.input_forms,
+                           prefix="ft_init_")
+    u0 = small.chamber_pressures(5000.0)
+    nm.initialize(u0)
+    rhs = nm._load(u0, nm.M.createVecLeft()).copy()
+    Ma = nm.M.createVecLeft()
+    nm.M.mult(nm.a.x.petsc_vec, Ma)
+    Ma.axpy(-1.0, rhs)
+    assert rhs.norm() > 0 and Ma.norm() < 1e-10 * rhs.norm()
+

@@ -49,7 +49,7 @@ def test_recorder_two_ranks_equals_serial(tmp_path):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code"])
+@pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code", "fishtail"])
 def test_quick_demos_two_ranks_equal_serial(demo, tmp_path):
     """Every demo runs under mpiexec -n 2 and reports the serial ROM errors."""
     import json
