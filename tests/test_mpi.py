@@ -72,4 +72,13 @@ def test_quick_demos_two_ranks_equal_serial(demo, tmp_path):
             if key in a and np.isfinite(a[key]):
                 # rounding differs between 1 and 2 ranks (assembly order); ill-conditioned
                 # fits (standard OpInf) amplify it to ~1e-6, so compare at 1e-4
-                assert b[key] == pytest.approx(a[key], rel=1e-4), (a["method"], a["r"], key)
+                # fishtail: the Cholesky of M + dt/2 C + dt^2/4 K (1e6 stiffness and density
+                # contrasts) rounds differently on 2 ranks at ~1e-8 of the output (checked
+                # below), which moves errors of ~5e-4 by ~6e-8
+                tol = 1e-6 if demo == "fishtail" else 0.0
+                assert b[key] == pytest.approx(a[key], rel=1e-4, abs=tol), (a["method"], a["r"], key)
+    if demo == "fishtail":
+        for name in ("sine", "step"):
+            ya = np.load(tmp_path / "serial" / f"fom_{name}.npz")["Y"]
+            yb = np.load(tmp_path / "parallel" / f"fom_{name}.npz")["Y"]
+            assert np.abs(ya - yb).max() <= 1e-6 * np.abs(ya).max(), name
