@@ -144,7 +144,8 @@ def main(argv=None):
     beam = beam_data(max(k_values) + 8) if "beam" in sets else None
     warnings.simplefilter("ignore", RuntimeWarning)
     print(f"{'set':>6} {'r':>3} {'K':>6} {'ours ms':>9} {'(solve)':>8} {'cvx-comp ms':>11} "
-          f"{'cvx-naive ms':>12} {'speed-up':>8} {'gap vs cvx':>11} {'min eig K':>10} solver")
+          f"{'cvx-naive ms':>12} {'speed-up':>8} {'gap vs cvx':>11} {'min eig K':>10} {'its':>5} "
+          f"{'cert. gap':>9} solver")
     for kind in sets:
         for r in r_values:
             for K in k_values:
@@ -189,11 +190,16 @@ def main(argv=None):
                        "min_eig_K": float(np.linalg.eigvalsh(ops.K).min()),
                        "min_eig_C": ops.certificate.get("min_eig_C"),
                        "solver": ops.certificate.get("solver"),
+                       "iterations": ops.certificate.get("iterations"),
+                       "certified_gap": ops.certificate.get("duality_gap"),
                        "symmetric": bool(np.array_equal(ops.K, ops.K.T))}
                 rows.append(row)
                 print(f"{kind:>6} {r:>3} {K:>6} {t_ours * 1e3:9.2f} {solve_s * 1e3:8.2f} "
                       f"{t_comp * 1e3:11.1f} {t_naive * 1e3:12.1f} {t_comp / t_ours:8.1f} "
-                      f"{row['relative_gap']:11.2e} {row['min_eig_K']:10.3e} {row['solver']}",
+                      f"{row['relative_gap']:11.2e} {row['min_eig_K']:10.3e} "
+                      f"{row['iterations'] if row['iterations'] is not None else '-':>5} "
+                      f"{row['certified_gap'] if row['certified_gap'] is not None else float('nan'):9.1e} "
+                      f"{row['solver']}",
                       flush=True)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

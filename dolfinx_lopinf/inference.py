@@ -106,23 +106,6 @@ def _data_matrix(Qh, dQh, ddQh, U, damping):
     return D, ddQh, r, m
 
 
-def _thin_qr(A: np.ndarray):
-    """Thin QR of a tall matrix (K, p). CholeskyQR2 (two passes of A^T A = R^T R, all BLAS-3:
-    a few ms for K = 10^4) when A is well enough conditioned for it (cond < ~1e7), else
-    Householder (numpy), which is exact for any conditioning but 10-20x slower here."""
-    try:
-        R1 = np.linalg.cholesky(A.T @ A).T
-        Q1 = scipy.linalg.solve_triangular(R1, A.T, trans="T", lower=False, check_finite=False).T
-        R2 = np.linalg.cholesky(Q1.T @ Q1).T
-        Q = scipy.linalg.solve_triangular(R2, Q1.T, trans="T", lower=False, check_finite=False).T
-        R = R2 @ R1
-        if np.abs(Q.T @ Q - np.eye(A.shape[1])).max() < 1e-10:
-            return Q, R
-    except np.linalg.LinAlgError:
-        pass
-    return np.linalg.qr(A)
-
-
 def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
     """Form the compressed least-squares data (one pass over the snapshots).
 
@@ -136,7 +119,13 @@ def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
     scale = np.linalg.norm(D, axis=1)
     if np.any(scale == 0):
         raise ValueError(f"data rows {np.flatnonzero(scale == 0).tolist()} of [Qh; dQh; U] are zero")
-    Qf, R = _thin_qr((D / scale[:, None]).T)
+    # One Householder QR of the augmented tall matrix [Dn^T, ddQh^T] (K x (p + r)), Q never
+    # formed: its leading p x p block is R (Dn^T = Qf R) and the block beside it is
+    # Qf^T ddQh^T = Z^T - exact for any conditioning, one LAPACK call, O(K (p + r)^2).
+    p = D.shape[0]
+    R_aug = scipy.linalg.qr(np.hstack([(D / scale[:, None]).T, ddQh.T]), mode="r",
+                            overwrite_a=True, check_finite=False)[0]
+    R, Z = R_aug[:p, :p], R_aug[:p, p:].T
     sv = np.linalg.svd(R, compute_uv=False)
     cond = sv[0] / max(sv[-1], np.finfo(float).tiny)
     # Rank deficient = singular at double precision. Block-diagonal POD makes the data badly
@@ -155,7 +144,6 @@ def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
             "fitted operators may be sensitive to noise - consider a smaller r", RuntimeWarning,
             stacklevel=3)
     L = scale[:, None] * R.T
-    Z = ddQh @ Qf
     return GramData(L, Z, float(np.sum(ddQh**2)), r, m, damping, float(cond))
 
 
@@ -275,17 +263,13 @@ def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
         L_S, Z_S, recover = gram.L, gram.Z, None
     solver = "admm"
     if gram.has_damping:
-        # symmetric minimiser first: if it is >= eps I it is the answer (KKT, zero multiplier)
-        theta_S = lsq.solve_symmetric_blocks(L_S, Z_S, 2)
-        mins = [np.linalg.eigvalsh(theta_S[:, b]).min() for b in (slice(0, r), slice(r, 2 * r))]
-        solver = "symmetric-lsq"
-        info = {"iterations": 0, "converged": True, "seconds": 0.0}
-        if min(mins) < eps:
-            theta_S, info = lsq.solve_admm_sym(L_S, Z_S, 2, eps)
-            solver = "admm"
-            if not info["converged"]:  # the interior point method is slower but sure-footed
-                theta_S, info = lsq.solve_ipm(L_S, Z_S, 2, eps)
-                solver = "ipm"
+        # symmetric minimiser if it is >= eps I (zero multipliers), else ADMM to the optimal
+        # face, an exact solve on it and a certified duality gap
+        theta_S, info = lsq.solve_psd_blocks(L_S, Z_S, 2, eps)
+        solver = "symmetric-lsq" if info["method"] == "symmetric-lsq" else "admm"
+        if not info["converged"]:  # the interior point method is slower but sure-footed
+            theta_S, info = lsq.solve_ipm(L_S, Z_S, 2, eps)
+            solver = "ipm"
     elif gram.m:
         theta_S = lsq.solve_symmetric(L_S, Z_S)
         solver, info = "lyapunov", {"iterations": 0, "converged": True, "seconds": 0.0}
