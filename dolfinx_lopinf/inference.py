@@ -97,13 +97,13 @@ def _data_matrix(Qh, dQh, ddQh, U, damping):
         U = check_matrix(np.atleast_2d(U), "U", cols=K)
         m = U.shape[0]
         rows.append(U)
-    D = np.vstack(rows)
-    if K < D.shape[0]:
+    p = sum(block.shape[0] for block in rows)
+    if K < p:
         raise ValueError(
-            f"{K} snapshots cannot determine {D.shape[0]} unknowns per row; record more "
+            f"{K} snapshots cannot determine {p} unknowns per row; record more "
             "time samples or lower r"
         )
-    return D, ddQh, r, m
+    return rows, ddQh, r, m
 
 
 def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
@@ -112,19 +112,24 @@ def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
     Raises ``ValueError`` with the rank and condition number when D = [Qh; dQh; U] is
     rank deficient, because then the operators are not determined by the data.
     """
-    D, ddQh, r, m = _data_matrix(Qh, dQh, ddQh, U, damping)
-    # Thin QR of the row-normalised data, D^T = diag(s)^-1-free form: Dn^T = Qf R with
-    # Dn = diag(1/s) D. Then G = D D^T = L L^T with L = diag(s) R^T and Z = ddQh Qf, without
-    # ever squaring the condition number (POD coordinates span many decades).
-    scale = np.linalg.norm(D, axis=1)
+    rows, ddQh, r, m = _data_matrix(Qh, dQh, ddQh, U, damping)
+    # Row-normalised data Dn = diag(1/s) D, D = [Qh; dQh; U] (p x K). One Householder QR of
+    # the augmented tall matrix [Dn^T, ddQh^T] (K x (p + r)), Q never formed: its leading
+    # p x p block is R (Dn^T = Qf R) and the block beside it is Qf^T ddQh^T = Z^T. Then
+    # G = D D^T = L L^T with L = diag(s) R^T - exact for any conditioning (the condition
+    # number is never squared; POD coordinates span many decades), one LAPACK call on one
+    # Fortran-ordered copy of the data, O(K (p + r)^2).
+    scale = np.concatenate([np.linalg.norm(block, axis=1) for block in rows])
     if np.any(scale == 0):
         raise ValueError(f"data rows {np.flatnonzero(scale == 0).tolist()} of [Qh; dQh; U] are zero")
-    # One Householder QR of the augmented tall matrix [Dn^T, ddQh^T] (K x (p + r)), Q never
-    # formed: its leading p x p block is R (Dn^T = Qf R) and the block beside it is
-    # Qf^T ddQh^T = Z^T - exact for any conditioning, one LAPACK call, O(K (p + r)^2).
-    p = D.shape[0]
-    R_aug = scipy.linalg.qr(np.hstack([(D / scale[:, None]).T, ddQh.T]), mode="r",
-                            overwrite_a=True, check_finite=False)[0]
+    p, K = len(scale), ddQh.shape[1]
+    A = np.empty((K, p + r), order="F")
+    start = 0
+    for block in rows:
+        A[:, start:start + block.shape[0]] = block.T / scale[start:start + block.shape[0]]
+        start += block.shape[0]
+    A[:, p:] = ddQh.T
+    R_aug = scipy.linalg.qr(A, mode="r", overwrite_a=True, check_finite=False)[0]
     R, Z = R_aug[:p, :p], R_aug[:p, p:].T
     sv = np.linalg.svd(R, compute_uv=False)
     cond = sv[0] / max(sv[-1], np.finfo(float).tiny)
@@ -134,7 +139,7 @@ def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
     if sv[-1] <= tol:
         rank = int((sv > tol).sum())
         raise ValueError(
-            f"the data matrix [Qh; dQh; U] has numerical rank {rank} < {D.shape[0]} "
+            f"the data matrix [Qh; dQh; U] has numerical rank {rank} < {p} "
             f"(condition number {cond:.3g}); the operators are not determined by the data - "
             "lower r, record a richer trajectory or drop a block"
         )
@@ -341,9 +346,9 @@ def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True) -> MechanicalOpe
     The baseline L-OpInf is compared against: it fits the training data, but Kh is
     neither symmetric nor definite, so the ROM carries no Lagrangian structure.
     """
-    D, ddQh, r, m = _data_matrix(Qh, dQh, ddQh, U, damping)
+    rows, ddQh, r, m = _data_matrix(Qh, dQh, ddQh, U, damping)
     t0 = time.perf_counter()
-    theta = -np.linalg.lstsq(D.T, ddQh.T, rcond=None)[0].T
+    theta = -np.linalg.lstsq(np.vstack(rows).T, ddQh.T, rcond=None)[0].T
     seconds = time.perf_counter() - t0
     K, C, B = _split_theta(theta, r, m, damping)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping)

@@ -565,6 +565,10 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                 A = np.diag(w[r - m:])
                 if m and w[r - m] <= 0:
                     return None
+                if m == r:  # interior of the cone: S_k itself is the chart (J_k = identity)
+                    charts.append((P, N, A, nv))
+                    J_cols.append(None)
+                    continue
                 a, b = np.triu_indices(m)
                 Pi, Pj, Ni, Nj = P[iu[0]], P[iu[1]], N[iu[0]], N[iu[1]]
                 JA = Pi[:, a] * Pj[:, b] + (a != b) * Pi[:, b] * Pj[:, a]      # vech(P E_ab P^T)
@@ -572,11 +576,15 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                 JB = JB.reshape(nv, -1)                                         # (a, c) a-major
                 charts.append((P, N, A, len(a)))
                 J_cols.append(np.hstack([JA, JB]))
-            dims = [Jk.shape[1] for Jk in J_cols]
+            dims = [nv if Jk is None else Jk.shape[1] for Jk in J_cols]
             starts = np.concatenate([[0], np.cumsum(dims)])
-            HJ = np.hstack([H[:, k * nv:(k + 1) * nv] @ J_cols[k] for k in range(n_blocks)])
-            M = np.vstack([J_cols[k].T @ HJ[k * nv:(k + 1) * nv] for k in range(n_blocks)])
-            g_d = np.concatenate([J_cols[k].T @ grad_x[k * nv:(k + 1) * nv] for k in range(n_blocks)])
+
+            def jt(k, Mat):  # J_k^T Mat
+                return Mat if J_cols[k] is None else J_cols[k].T @ Mat
+            HJ = np.hstack([H[:, k * nv:(k + 1) * nv] if J_cols[k] is None
+                            else H[:, k * nv:(k + 1) * nv] @ J_cols[k] for k in range(n_blocks)])
+            M = np.vstack([jt(k, HJ[k * nv:(k + 1) * nv]) for k in range(n_blocks)])
+            g_d = np.concatenate([jt(k, grad_x[k * nv:(k + 1) * nv]) for k in range(n_blocks)])
             for k, (P, N, A, nA) in enumerate(charts):
                 if N.shape[1] and P.shape[1]:
                     lam_nn = N.T @ Lam[k] @ N
@@ -596,6 +604,12 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                     dk = step * d[starts[k]:starts[k + 1]]
                     m = P.shape[1]
                     if m == 0:
+                        continue
+                    if J_cols[k] is None:  # interior chart: S_k + dS_k must stay > eps I
+                        x_new[k * nv:(k + 1) * nv] = x[k * nv:(k + 1) * nv] + dk
+                        if np.linalg.eigvalsh(blocks(x_new)[k]).min() <= eps:
+                            ok = False
+                            break
                         continue
                     dA = np.zeros((m, m))
                     ia, ib = np.triu_indices(m)

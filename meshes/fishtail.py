@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import argparse
 
-#: element sizes: small (tests) 22,173 P2 dofs, default 46,224, large 847,848 (>= 779,232)
+#: element sizes: small (tests) 22,173 P2 dofs, default 46,224, large 795,405 (>= 779,232)
 SIZES = {"small": 0.012, "default": 0.007, "large": 0.00195}
 ELLIPSES = [(0.0, 0.025, 0.030), (0.12, 0.018, 0.026), (0.24, 0.003, 0.016)]
 BEAM = dict(half_thickness=0.0005, half_height=0.0005, length=0.21)
