@@ -13,11 +13,12 @@ of snapshots K.
 * :func:`solve_psd_single` - one symmetric block >= eps I: ADMM whose K-step is exact in
   the eigenbasis of G (robust to the 1e12 condition numbers of block-POD beam data).
 * :func:`solve_symmetric_blocks` - several symmetric blocks, no definiteness: normal equations.
-* :func:`solve_psd_blocks` - several symmetric blocks >= eps I: ADMM with an exactly symmetric
-  x-step until the optimal face shows, an exact solve on that face, Newton on the fixed-rank
-  face, and a certified duality gap (closed-form dual bound).
+* :func:`solve_psd_blocks` - several symmetric blocks >= eps I: a primal-dual interior point
+  method (HKM, Mehrotra) with a certified duality gap (closed-form dual bound); as fallback,
+  ADMM with an exactly symmetric x-step until the optimal face shows, an exact solve on that
+  face and Newton on the fixed-rank face.
 * :func:`solve_ipm` - the same problem by a log-barrier interior point method with a
-  duality-gap certificate (slower; the fallback).
+  duality-gap certificate (slow; the last resort).
 * :func:`solve_admm` - any mix of symmetric-PSD (>= eps I) and free blocks, by ADMM on the
   splitting Theta_S = W (S = the constrained columns), W symmetric and >= eps I:
 
@@ -426,23 +427,164 @@ def _equilibrated_solve(H: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return _SPDSolver(H).solve(rhs)
 
 
+@functools.lru_cache(maxsize=32)
+def _hkm_index(r: int):
+    """vech pairs (i <= j) and their flat positions i r + j, j r + i in an r x r matrix."""
+    i, j = np.triu_indices(r)
+    colscale = np.where(i == j, 0.5, 1.0)
+    out = (i, j, i * r + j, j * r + i, colscale)
+    for arr in out:
+        arr.setflags(write=False)
+    return out
+
+
+def _hkm_blocks(Xi: np.ndarray, Lam: np.ndarray, Dw: np.ndarray) -> np.ndarray:
+    """M_k with M_k dx = D vech(sym(X_k^-1 dX Lambda_k)) for every block, in vech coordinates:
+    M[(i,j),(k,l)] = D_ij c_kl (Xi_ik L_jl + Xi_il L_jk + L_ik Xi_jl + L_il Xi_jk) / 2, c = 1/2 on
+    the diagonal. Built from the rows (i, j) of kron(Xi, L) + kron(L, Xi), then its columns
+    (k, l) and (l, k)."""
+    b, r, _ = Xi.shape
+    i, j, vidx, vidx_t, colscale = _hkm_index(r)
+    rows = (Xi[:, i, :, None] * Lam[:, j, None, :] + Lam[:, i, :, None] * Xi[:, j, None, :])
+    rows = rows.reshape(b, len(i), r * r)
+    M = rows[:, :, vidx] + rows[:, :, vidx_t]
+    M *= 0.5 * Dw[None, :, None] * colscale[None, None, :]
+    return M
+
+
+def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol, max_iter=40):
+    """min x^T H x + 2 h^T x  s.t.  X_k(x) = S_k(x) - eps I >= 0  by a primal-dual interior point
+    method: HKM direction, Mehrotra predictor-corrector, one Cholesky per iteration.
+
+    Optimality: grad f(x) = D vech(Lambda) (D: 2 off the diagonal), X_k Lambda_k = mu I.
+    Newton on it with Lambda eliminated, dLambda = sym(X^-1 (R - dX Lambda)), gives
+    (2 H + sum_k D (X_k^-1 (x)_s Lambda_k)) dx = -(grad f - D vech Lambda) + D vech sym(X^-1 R)
+    - the Schur matrix; R = sigma mu I - X Lambda (- dX_aff dLambda_aff in the corrector).
+    Each block is first scaled by a congruence X_k = D_k X'_k D_k (D_k^4 = diag of H on the
+    block's diagonal entries), which keeps the cone and balances K against C. x stays
+    strictly feasible, so ``certify(x)`` (the closed-form dual bound) is a proof of the gap;
+    the loop ends when that certified relative gap is <= ``gap_tol``.
+    """
+    iu, full, *_, off, _ = _sym_index(r, n_blocks)
+    nv = len(iu[0])
+    Dw = 1.0 + off
+    eye = np.eye(r)
+    x_eps = np.tile(eps * (1.0 - off[:nv]), n_blocks)
+    dg = np.diag(H).reshape(n_blocks, nv)[:, iu[0] == iu[1]]
+    dsc = np.maximum(dg, 1e-300) ** -0.25
+    T = (dsc[:, iu[0]] * dsc[:, iu[1]]).reshape(-1)
+    Hs = T[:, None] * H * T[None, :]
+    hs = T * (H @ x_eps + h)
+    H2 = 2.0 * Hs
+
+    def blocks(v):
+        return v.reshape(n_blocks, nv)[:, full]
+
+    def vech(S):
+        return S[:, iu[0], iu[1]].reshape(-1)
+
+    c0 = float(x_eps @ (H @ x_eps) + 2.0 * h @ x_eps + const)
+
+    def f(v):  # the objective in the scaled unknowns (const = ||Z||^2; a stopping guide only)
+        return float(v @ (Hs @ v) + 2.0 * hs @ v + c0)
+
+    def max_step(P, dP):  # largest a <= 1 with P + a dP >= 0
+        Li = np.linalg.inv(np.linalg.cholesky(P))
+        ev = np.linalg.eigvalsh(Li @ dP @ Li.transpose(0, 2, 1)).min()
+        return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
+
+    w, Q = np.linalg.eigh(blocks((x_start - x_eps) / T))
+    floor = 1e-2 * np.abs(w).max(axis=1, keepdims=True)
+    X = (Q * np.maximum(np.abs(w), floor)[:, None, :]) @ Q.transpose(0, 2, 1)
+    x = vech(X)
+    m = n_blocks * r
+    f_ref = max(abs(f(x)), 1e-300)
+    Lam = np.linalg.inv(X) * (f_ref / m)
+    info = {"iterations": 0, "converged": False, "duality_gap": np.inf, "face_multiplier_min": -np.inf}
+    for it in range(1, max_iter + 1):
+        info["iterations"] = it
+        wX, VX = np.linalg.eigh(X)  # X^-1 through the eigenbasis: PD however wide X's spread
+        Xi = (VX / wX[:, None, :]) @ VX.transpose(0, 2, 1)
+        grad = 2.0 * (Hs @ x + hs)
+        rd = grad - Dw * vech(Lam)
+        mu = float(np.sum(X * Lam)) / m
+        hkm = _hkm_blocks(Xi, Lam, Dw[:nv])
+        Ms = H2.copy()
+        for k in range(n_blocks):
+            Ms[k * nv:(k + 1) * nv, k * nv:(k + 1) * nv] += hkm[k]
+        d = np.sqrt(np.diag(Ms))
+        Ms *= (1.0 / d)[:, None]  # Jacobi equilibration, in place
+        Ms *= (1.0 / d)[None, :]
+        c, status = scipy.linalg.lapack.dpotrf(Ms, lower=0, clean=0)
+        for shift in (1e-12, 1e-10, 1e-8):  # rounding as mu -> 0: a small shift (damping)
+            if status == 0:
+                break
+            c, status = scipy.linalg.lapack.dpotrf(Ms + shift * np.eye(len(Ms)), lower=0, clean=0)
+        if status != 0:
+            info["stopped"] = f"Schur matrix not positive definite at iteration {it}, mu {mu:.1e}, f {f(x):.3e}"
+            break
+
+        def direction(R):
+            XiR = Xi @ R
+            rhs = -rd + Dw * vech(0.5 * (XiR + XiR.transpose(0, 2, 1)))
+            dx = scipy.linalg.lapack.dpotrs(c, rhs / d, lower=0)[0] / d
+            dX = blocks(dx)
+            Tm = XiR - Xi @ dX @ Lam
+            return dx, dX, 0.5 * (Tm + Tm.transpose(0, 2, 1))
+
+        XL = X @ Lam
+        try:
+            dx, dX, dL = direction(-XL)                                   # predictor (mu -> 0)
+            a = min(max_step(X, dX), max_step(Lam, dL))
+            mu_aff = float(np.sum((X + a * dX) * (Lam + a * dL))) / m
+            sigma = (mu_aff / mu) ** 3
+            dx, dX, dL = direction(sigma * mu * eye - XL - dX @ dL)        # corrector
+            a = min(1.0, 0.98 * min(max_step(X, dX), max_step(Lam, dL)))
+        except np.linalg.LinAlgError:  # X or Lambda lost definiteness to rounding
+            info["stopped"] = f"iterate not positive definite at iteration {it}"
+            break
+        x = x + a * dx
+        X, Lam = blocks(x), Lam + a * dL
+        mu = float(np.sum(X * Lam)) / m
+        if m * mu <= gap_tol * f_ref or a < 1e-3:
+            gap, lam_min = certify(x_eps + T * x)
+            info.update(duality_gap=gap, face_multiplier_min=lam_min)
+            if gap <= gap_tol:
+                info["converged"] = True
+                break
+            if a < 1e-3:
+                info["stopped"] = "step length below 1e-3"
+                break
+            f_ref = max(abs(f(x)), 1e-300)
+    # rank of each X_k at the solution: the eigen-directions where X exceeds Lambda (their
+    # product is ~mu, strict complementarity sends one of them to 0; the scaling makes the
+    # two comparable: Lambda ~ grad f ~ H' x')
+    wX, VX = np.linalg.eigh(X)
+    wL = np.einsum("kia,kij,kja->ka", VX, Lam, VX)
+    info.update(mu=mu, ranks=[int(v) for v in (wX > wL).sum(axis=1)])
+    return x_eps + T * x, info
+
+
 def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                      gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
                      max_iter: int = 5000, memory: int = 8, rho0: float = 0.3,
-                     ) -> tuple[np.ndarray, dict]:
+                     method: str = "auto") -> tuple[np.ndarray, dict]:
     """min f(Theta) = ||Theta L + Z||_F^2 over Theta = [S_1 .. S_b], S_k = S_k^T >= eps I.
 
     In the vech unknowns x, f = x^T H x + 2 h^T x + ||Z||^2 (:func:`symmetric_normal_equations`).
 
     1. The symmetric minimiser H x = -h; if every block is >= eps I it is the answer.
-    2. ADMM on x = w (w in the cone), Anderson-accelerated (type II, safeguarded): x-step
+    2. ``method="auto"``: a primal-dual interior point method (:func:`_primal_dual_ipm`,
+       10-20 iterations of one Cholesky each) until the certificate of step 5 proves the
+       gap. If it does not (or ``method="admm"``), steps 3-5:
+    3. ADMM on x = w (w in the cone), Anderson-accelerated (type II, safeguarded): x-step
        (2 H + rho D) x = -2 h + rho D (w - y) (R^-1 of one Cholesky per rho), w-step
        eigenvalue clipping of every block (one batched ``eigh``), rho by residual balancing.
-    3. Once ADMM's residuals are below ``admm_tol`` its clipping shows the face,
+    4. Once ADMM's residuals are below ``admm_tol`` its clipping shows the face,
        S_k = eps I + P_k A_k P_k^T (P_k: eigenvectors kept above eps, rank m_k). Polish: f
        minimised exactly over the A_k with the P_k fixed (normal equations T^T H T).
-    4. Newton on the fixed-rank faces (see ``newton_on_face``), which also turns the P_k:
-       quadratic convergence, 1-4 steps, each one Cholesky of the model Hessian.
+       Then Newton on the fixed-rank faces (see ``newton_on_face``), which also turns the
+       P_k: quadratic convergence once the ranks are right, one Cholesky per step.
     5. Certificate: the point is feasible and the projected multipliers
        Lambda_k = [grad_{S_k} f]_+ >= 0 give the dual bound
        g(Lambda) = min_x f(x) - sum_k <Lambda_k, S_k(x) - eps I> <= f*, in closed form with
@@ -453,6 +595,9 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
     Returns ``(Theta, info)``: iterations, polish attempts, face ranks (rank of S_k - eps I),
     ``duality_gap`` (relative, certified), residuals and seconds.
     """
+    if method not in ("auto", "admm"):
+        raise ValueError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
+                         f"not {method!r}")
     t0 = time.perf_counter()
     r = Z.shape[0]
     iu, full, _, _, _, _, off, blk = _sym_index(r, n_blocks)
@@ -538,22 +683,23 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
     def objective(x):
         return float(np.sum((_theta_from_x(x, r, n_blocks, terms) @ L + Z) ** 2))
 
-    def newton_on_face(x, ranks, max_steps=4):
+    def newton_on_face(x, ranks, max_steps=10):
         """Newton's method on the fixed-rank faces {S_k = eps I + X_k, rank X_k = m_k, X_k >= 0}.
 
         Chart at X = P A P^T (N spans the complement): X(dA, dB) = W (A + dA) W^T with
         W = P + N dB (A + dA)^-1, which is PSD of rank m whenever A + dA > 0. To second order
         dS = P dA P^T + N dB P^T + P dB^T N^T + N dB A^-1 dB^T N^T, so the quadratic model is
-        f + g^T d + d^T (J^T H J) d + sum_k tr(N^T Lambda_k N dB A^-1 dB^T) (J: d -> vech(dS)
-        to first order, Lambda_k = grad_{S_k} f). Each step: one Cholesky of that model's
+        f + g^T d + d^T (J^T H J) d + sum_k tr([N^T Lambda_k N]_+ dB A^-1 dB^T) (J: d -> vech(dS)
+        to first order, Lambda_k = grad_{S_k} f, []_+ the PSD part). Each step: one Cholesky of that model's
         Hessian, a backtracking line search on f; quadratic convergence once the ranks are
         right (they come from ADMM), so the subspaces ADMM only knows to ~admm_tol are
-        corrected exactly. Returns (x, relative certified gap) or None if a step fails.
+        corrected exactly. Returns (x, relative certified gap), or None if a step fails or the
+        face optimum is reached without a certificate (the ranks were wrong).
         """
         fx = objective(x)
         gap = np.inf
-        n_steps = 0
-        for n_steps in range(1, max_steps + 1):
+        for _ in range(max_steps):
+            info["newton_steps"] = info.get("newton_steps", 0) + 1
             S = blocks(x) - eps * np.eye(r)
             grad_x = 2.0 * (H @ x + h)
             Lam = blocks(grad_x / Dw)
@@ -587,7 +733,10 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
             g_d = np.concatenate([jt(k, grad_x[k * nv:(k + 1) * nv]) for k in range(n_blocks)])
             for k, (P, N, A, nA) in enumerate(charts):
                 if N.shape[1] and P.shape[1]:
-                    lam_nn = N.T @ Lam[k] @ N
+                    # PSD part of N^T Lambda N: equal to it at the optimum (Lambda >= 0 there),
+                    # and keeps the model convex (a descent direction) far from it
+                    lw, lV = np.linalg.eigh(N.T @ Lam[k] @ N)
+                    lam_nn = (lV * np.maximum(lw, 0.0)) @ lV.T
                     sl = slice(starts[k] + nA, starts[k + 1])
                     M[sl, sl] += np.kron(np.diag(1.0 / np.diag(A)), lam_nn)
             M = 0.5 * (M + M.T)
@@ -597,7 +746,7 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
             d = -0.5 * solver.solve(g_d)
             decrease = -0.5 * float(g_d @ d)  # predicted decrease of the model: -(g d + d M d)
             step = 1.0
-            while step > 0.2:  # far from the optimum (a damped step): leave it to ADMM
+            while step > 0.1:  # a heavily damped step: far from the face optimum, back to ADMM
                 x_new = x_eps.copy()
                 ok = True
                 for k, (P, N, A, nA) in enumerate(charts):
@@ -625,19 +774,40 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                     Xk = W @ A_new @ W.T
                     x_new[k * nv:(k + 1) * nv] += Xk[iu]
                 if ok:
-                    f_new = objective(x_new)
-                    if f_new <= fx - 1e-4 * step * max(decrease, 0.0):
+                    dx = x_new - x  # f(x + dx) - f(x) exactly, free of the cancellation in f
+                    change = float((grad_x + H @ dx) @ dx)
+                    if change <= -1e-4 * step * max(decrease, 0.0):
                         break
                 step *= 0.5
             else:
                 return None
-            x, fx = x_new, f_new
+            x, fx = x_new, fx + change
             gap, _ = dual_gap(x)
             info.setdefault("newton_trace", []).append((step, gap))
             if gap <= gap_tol:
                 break
-        info["newton_steps"] = info.get("newton_steps", 0) + n_steps
+            if decrease <= 1e-3 * gap_tol * fx:  # face optimum, not certified: wrong ranks
+                return None
         return x, gap
+
+    if method == "auto" and chol.ok:  # the certificate needs H > 0
+        x_ip, ip = _primal_dual_ipm(H, h, float(np.sum(Z**2)), r, n_blocks, eps, x,
+                                    certify=dual_gap, gap_tol=gap_tol)
+        info["ipm"] = {k: v for k, v in ip.items() if k != "ranks"}
+        if not ip["converged"]:  # crossover: Newton on the face the interior point shows
+            S = blocks(x_ip) - eps * np.eye(r)
+            w, Q = np.linalg.eigh(S)
+            w = np.where(np.arange(r)[None, :] >= r - np.array(ip["ranks"])[:, None], w, 0.0)
+            x_face = x_eps + vech((Q * w[:, None, :]) @ Q.transpose(0, 2, 1))
+            refined = newton_on_face(x_face, ip["ranks"]) if min(w.max(axis=1)) >= 0 else None
+            if refined is not None and refined[1] <= gap_tol:
+                x_ip = refined[0]
+                ip.update(converged=True, duality_gap=refined[1], crossover=True)
+        if ip["converged"]:
+            info.update(iterations=ip["iterations"], converged=True, method="ipm",
+                        duality_gap=ip["duality_gap"], face_ranks=ip["ranks"],
+                        face_multiplier_min=dual_gap(x_ip)[1], seconds=time.perf_counter() - t0)
+            return _theta_from_x(x_ip, r, n_blocks, terms), info
 
     def project(v):
         w, Q = np.linalg.eigh(blocks(v))
@@ -702,13 +872,16 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
             ranks = [int((eig[0][k] > eps).sum()) for k in range(n_blocks)]
             # exact minimiser on the face ADMM found (its subspaces fixed) ...
             xp, a_min = polish(*eig)
+            info.setdefault("attempts", []).append({"iteration": it, "ranks": ranks, "a_min": a_min})
             if a_min > 0:
                 gap, lam_min = dual_gap(xp)
+                info["attempts"][-1].update(polish_gap=gap, lam_min=lam_min)
                 if gap <= gap_tol or (not chol.ok and lam_min >= -kkt_tol):
                     result, converged = xp, True
                     break
                 if chol.ok:  # ... then Newton on the face, which also turns the subspaces
                     refined = newton_on_face(xp, ranks)
+                    info["attempts"][-1].update(newton=None if refined is None else refined[1])
                     if refined is not None and refined[1] <= gap_tol:
                         result, converged = refined[0], True
                         gap, lam_min = dual_gap(result)

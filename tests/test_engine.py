@@ -54,7 +54,7 @@ def test_active_constraints_match_clarabel():
                np.linalg.eigvals(unconstrained.C).real.min()) < 0
     ours = lo.infer_mechanical(*data)
     ref = _quiet(lo.infer_mechanical, *data, solver="cvxpy")
-    assert ours.certificate["solver"] == "admm"
+    assert ours.certificate["solver"] == "ipm" and ours.certificate["duality_gap"] <= 1e-8
     gap = (ours.certificate["objective"] - ref.certificate["objective"]) / ref.certificate["objective"]
     assert gap < 1e-6, gap
     assert ours.certificate["min_eig_K"] >= 1e-8 * (1 - 1e-6)
@@ -62,7 +62,7 @@ def test_active_constraints_match_clarabel():
     # KKT: multipliers (gradients on the constrained blocks) PSD, complementarity ~ 0
     assert ours.certificate["multiplier_min_eig"] > -1e-6
     assert ours.certificate["complementarity"] < 1e-6
-    # the interior point method reaches the same point with a small duality gap
+    # the log-barrier method (the last resort) reaches the same point with a small gap
     from dolfinx_lopinf.inference import gram_data
 
     g = gram_data(*data)
@@ -180,10 +180,13 @@ def test_symmetric_normal_equations_match_the_residual():
         assert x @ H @ x + 2 * h @ x + np.sum(Z**2) == pytest.approx(np.sum((theta @ L + Z) ** 2), rel=1e-12)
 
 
-@pytest.mark.parametrize("r,seed", [(8, 0), (12, 2)])
-def test_face_polished_solver_is_certified_against_clarabel(r, seed):
-    """Both PSD blocks active: the ADMM + face solve returns a feasible point whose certified
-    duality gap is <= 1e-8, and that certified lower bound does not exceed Clarabel's value."""
+@pytest.mark.parametrize("method", ["auto", "admm"])
+@pytest.mark.parametrize("r,seed", [(8, 0), (12, 2), (20, 1)])
+def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
+    """Both PSD blocks active: the interior point method ("auto") and ADMM + face Newton
+    ("admm") each return a feasible point whose certified duality gap is <= 1e-8, and that
+    certified lower bound does not exceed Clarabel's value. (20, 1) is the case where ADMM
+    needed 144 iterations to find the face."""
     from dolfinx_lopinf.benchmark import forced_data
     from dolfinx_lopinf.inference import _objective, _solve_cvxpy, gram_data
 
@@ -192,8 +195,8 @@ def test_face_polished_solver_is_certified_against_clarabel(r, seed):
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, recover = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
-    assert info["converged"] and info["method"] == "admm+face"
+    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method=method)
+    assert info["converged"] and info["method"] == {"auto": "ipm", "admm": "admm+face"}[method]
     assert info["duality_gap"] <= 1e-8
     assert min(info["face_ranks"]) < r  # an active constraint: a proper face
     for b in (slice(0, r), slice(r, 2 * r)):
@@ -224,3 +227,33 @@ def test_gram_data_is_the_compressed_problem():
     assert np.allclose(g.Z @ g.L.T, ddQh @ D.T, rtol=1e-12, atol=1e-10 * np.abs(ddQh @ D.T).max())
     theta = np.linalg.lstsq(D.T, ddQh.T, rcond=None)[0].T
     assert g.target_norm2 - np.sum(g.Z**2) == pytest.approx(np.sum((ddQh - theta @ D) ** 2), rel=1e-10)
+
+
+def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
+    """The entry points pin BLAS to one thread while they run (small kernels) and give the
+    caller's thread count back, also when they raise."""
+    from threadpoolctl import ThreadpoolController
+
+    from dolfinx_lopinf.inference import _blas_controller
+
+    ctl = ThreadpoolController()
+    data, _ = _forced_damped_data(r=3, m=1, n=800)
+    with ctl.limit(limits=2, user_api="blas"):
+        before = [p["num_threads"] for p in ctl.info() if p["user_api"] == "blas"]
+        seen = []
+        original = lo.inference.gram_data
+
+        def spy(*a, **k):
+            seen.append([p["num_threads"] for p in _blas_controller().info() if p["user_api"] == "blas"])
+            return original(*a, **k)
+
+        lo.inference.gram_data = spy
+        try:
+            lo.infer_mechanical(*data)
+            with pytest.raises(ValueError):
+                lo.infer_mechanical(*data[:3], np.full_like(data[3], np.nan))
+        finally:
+            lo.inference.gram_data = original
+        after = [p["num_threads"] for p in ctl.info() if p["user_api"] == "blas"]
+    assert seen and all(n == 1 for n in seen[0])
+    assert after == before
