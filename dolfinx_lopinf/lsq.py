@@ -441,13 +441,14 @@ def _hkm_index(r: int):
 def _hkm_blocks(Xi: np.ndarray, Lam: np.ndarray, Dw: np.ndarray) -> np.ndarray:
     """M_k with M_k dx = D vech(sym(X_k^-1 dX Lambda_k)) for every block, in vech coordinates:
     M[(i,j),(k,l)] = D_ij c_kl (Xi_ik L_jl + Xi_il L_jk + L_ik Xi_jl + L_il Xi_jk) / 2, c = 1/2 on
-    the diagonal. Built from the rows (i, j) of kron(Xi, L) + kron(L, Xi), then its columns
-    (k, l) and (l, k)."""
-    b, r, _ = Xi.shape
-    i, j, vidx, vidx_t, colscale = _hkm_index(r)
-    rows = (Xi[:, i, :, None] * Lam[:, j, None, :] + Lam[:, i, :, None] * Xi[:, j, None, :])
-    rows = rows.reshape(b, len(i), r * r)
-    M = rows[:, :, vidx] + rows[:, :, vidx_t]
+    the diagonal. Each term is two column gathers (``np.take``, 10x faster than 2-d fancy
+    indexing) of the rows Xi[i], L[j] of the vech pairs, multiplied."""
+    i, j, _, _, colscale = _hkm_index(Xi.shape[1])
+    Xa, Xb, La, Lb = Xi[:, i, :], Xi[:, j, :], Lam[:, i, :], Lam[:, j, :]
+    M = np.take(Xa, i, axis=2) * np.take(Lb, j, axis=2)
+    M += np.take(Xa, j, axis=2) * np.take(Lb, i, axis=2)
+    M += np.take(La, i, axis=2) * np.take(Xb, j, axis=2)
+    M += np.take(La, j, axis=2) * np.take(Xb, i, axis=2)
     M *= 0.5 * Dw[None, :, None] * colscale[None, None, :]
     return M
 
@@ -494,12 +495,12 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
         return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
 
     w, Q = np.linalg.eigh(blocks((x_start - x_eps) / T))
-    floor = 1e-2 * np.abs(w).max(axis=1, keepdims=True)
+    floor = 1e-3 * np.abs(w).max(axis=1, keepdims=True)
     X = (Q * np.maximum(np.abs(w), floor)[:, None, :]) @ Q.transpose(0, 2, 1)
     x = vech(X)
     m = n_blocks * r
     f_ref = max(abs(f(x)), 1e-300)
-    Lam = np.linalg.inv(X) * (f_ref / m)
+    Lam = np.linalg.inv(X) * (0.1 * f_ref / m)
     info = {"iterations": 0, "converged": False, "duality_gap": np.inf, "face_multiplier_min": -np.inf}
     for it in range(1, max_iter + 1):
         info["iterations"] = it
