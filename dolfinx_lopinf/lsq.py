@@ -477,6 +477,7 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
     Hs = T[:, None] * H * T[None, :]
     hs = T * (H @ x_eps + h)
     H2 = 2.0 * Hs
+    Ms = np.empty_like(H2)  # the Schur matrix, rebuilt in place every iteration
 
     def blocks(v):
         return v.reshape(n_blocks, nv)[:, full]
@@ -510,17 +511,17 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
         rd = grad - Dw * vech(Lam)
         mu = float(np.sum(X * Lam)) / m
         hkm = _hkm_blocks(Xi, Lam, Dw[:nv])
-        Ms = H2.copy()
+        np.copyto(Ms, H2)
         for k in range(n_blocks):
             Ms[k * nv:(k + 1) * nv, k * nv:(k + 1) * nv] += hkm[k]
-        d = np.sqrt(np.diag(Ms))
-        Ms *= (1.0 / d)[:, None]  # Jacobi equilibration, in place
-        Ms *= (1.0 / d)[None, :]
+        # (Cholesky's accuracy does not depend on a diagonal scaling, so none is applied)
         c, status = scipy.linalg.lapack.dpotrf(Ms, lower=0, clean=0)
-        for shift in (1e-12, 1e-10, 1e-8):  # rounding as mu -> 0: a small shift (damping)
+        for shift in (1e-12, 1e-10, 1e-8):  # rounding as mu -> 0: a small relative shift
             if status == 0:
                 break
-            c, status = scipy.linalg.lapack.dpotrf(Ms + shift * np.eye(len(Ms)), lower=0, clean=0)
+            d = np.sqrt(np.diag(Ms))
+            Mshift = Ms / d[:, None] / d[None, :] + shift * np.eye(len(Ms))
+            c, status = scipy.linalg.lapack.dpotrf(Mshift * d[:, None] * d[None, :], lower=0, clean=0)
         if status != 0:
             info["stopped"] = f"Schur matrix not positive definite at iteration {it}, mu {mu:.1e}, f {f(x):.3e}"
             break
@@ -528,7 +529,7 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
         def direction(R):
             XiR = Xi @ R
             rhs = -rd + Dw * vech(0.5 * (XiR + XiR.transpose(0, 2, 1)))
-            dx = scipy.linalg.lapack.dpotrs(c, rhs / d, lower=0)[0] / d
+            dx = scipy.linalg.lapack.dpotrs(c, rhs, lower=0)[0]
             dX = blocks(dx)
             Tm = XiR - Xi @ dX @ Lam
             return dx, dX, 0.5 * (Tm + Tm.transpose(0, 2, 1))
