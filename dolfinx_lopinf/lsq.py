@@ -570,7 +570,7 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
 def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                      gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
                      max_iter: int = 5000, memory: int = 8, rho0: float = 0.3,
-                     method: str = "auto") -> tuple[np.ndarray, dict]:
+                     method: str = "auto", ipm_max_iter: int = 40) -> tuple[np.ndarray, dict]:
     """min f(Theta) = ||Theta L + Z||_F^2 over Theta = [S_1 .. S_b], S_k = S_k^T >= eps I.
 
     In the vech unknowns x, f = x^T H x + 2 h^T x + ||Z||^2 (:func:`symmetric_normal_equations`).
@@ -794,8 +794,7 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
 
     if method == "auto" and chol.ok:  # the certificate needs H > 0
         x_ip, ip = _primal_dual_ipm(H, h, float(np.sum(Z**2)), r, n_blocks, eps, x,
-                                    certify=dual_gap, gap_tol=gap_tol)
-        info["ipm"] = {k: v for k, v in ip.items() if k != "ranks"}
+                                    certify=dual_gap, gap_tol=gap_tol, max_iter=ipm_max_iter)
         if not ip["converged"]:  # crossover: Newton on the face the interior point shows
             S = blocks(x_ip) - eps * np.eye(r)
             w, Q = np.linalg.eigh(S)
@@ -804,11 +803,14 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
             refined = newton_on_face(x_face, ip["ranks"]) if min(w.max(axis=1)) >= 0 else None
             if refined is not None and refined[1] <= gap_tol:
                 x_ip = refined[0]
-                ip.update(converged=True, duality_gap=refined[1], crossover=True)
+                ip.update(converged=True, duality_gap=refined[1], crossover=True,
+                          face_multiplier_min=dual_gap(x_ip)[1])
+        info["ipm"] = {k: v for k, v in ip.items() if k != "ranks"}
         if ip["converged"]:
             info.update(iterations=ip["iterations"], converged=True, method="ipm",
                         duality_gap=ip["duality_gap"], face_ranks=ip["ranks"],
-                        face_multiplier_min=dual_gap(x_ip)[1], seconds=time.perf_counter() - t0)
+                        face_multiplier_min=ip["face_multiplier_min"],
+                        seconds=time.perf_counter() - t0)
             return _theta_from_x(x_ip, r, n_blocks, terms), info
 
     def project(v):

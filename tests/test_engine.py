@@ -257,3 +257,27 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
         after = [p["num_threads"] for p in ctl.info() if p["user_api"] == "blas"]
     assert seen and all(n == 1 for n in seen[0])
     assert after == before
+
+
+def test_interior_point_crossover_and_fallback_are_certified():
+    """Stopped early, the interior point method hands its face to Newton on the fixed-rank
+    face (crossover, certified in a few steps); stopped too early for the face to be right,
+    ADMM + face Newton takes over - every path ends certified."""
+    from dolfinx_lopinf.benchmark import forced_data
+    from dolfinx_lopinf.inference import gram_data
+
+    Qh, dQh, ddQh, U = forced_data(12, 3000, seed=2)
+    g = gram_data(Qh, dQh, ddQh, U)
+    free = np.zeros(g.L.shape[0], dtype=bool)
+    free[-1] = True
+    L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
+    full, info_full = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
+    assert info_full["method"] == "ipm" and not info_full["ipm"].get("crossover")
+    f_full = np.sum((full @ L_S + Z_S) ** 2)
+    for ipm_iters, method in [(5, "ipm"), (2, "admm+face")]:
+        theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, ipm_max_iter=ipm_iters)
+        assert info["converged"] and info["method"] == method and info["duality_gap"] <= 1e-8
+        assert info["ipm"].get("crossover", False) == (method == "ipm")
+        assert np.sum((theta @ L_S + Z_S) ** 2) == pytest.approx(f_full, rel=2e-8)
+    with pytest.raises(ValueError, match="method"):
+        lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method="clarabel")
