@@ -428,9 +428,10 @@ class _SPDSolver:
         self.ok = status == 0
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
+        d = self.d if rhs.ndim == 1 else self.d[:, None]
         if self.ok:
-            return scipy.linalg.lapack.dpotrs(self.c, rhs / self.d, lower=1)[0] / self.d
-        return np.linalg.lstsq(self.Hs, rhs / self.d, rcond=None)[0] / self.d
+            return scipy.linalg.lapack.dpotrs(self.c, rhs / d, lower=1)[0] / d
+        return np.linalg.lstsq(self.Hs, rhs / d, rcond=None)[0] / d
 
 
 def _equilibrated_solve(H: np.ndarray, rhs: np.ndarray) -> np.ndarray:
@@ -477,7 +478,8 @@ def _max_step(P_isqrt: np.ndarray, *dP: np.ndarray) -> float:
 STEP_FRACTION = 0.98
 
 
-def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol, max_iter=40):
+def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol, max_iter=40,
+                     watch=None):
     """min x^T H x + 2 h^T x  s.t.  X_k(x) = S_k(x) - eps I >= 0  by a primal-dual interior point
     method: HKM direction, Mehrotra predictor-corrector, one Cholesky per iteration.
 
@@ -489,7 +491,8 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
     block's diagonal entries), which keeps the cone and balances K against C. x stays
     strictly feasible and Lambda PSD, so ``certify(x, Lambda)`` (the closed-form dual bound,
     Lambda mapped back to the unscaled blocks) is a proof of the gap;
-    the loop ends when that certified relative gap is <= ``gap_tol``.
+    the loop ends when that certified relative gap is <= ``gap_tol``. ``watch(x, m mu / f)``,
+    if given, is called after every iteration and ends the loop when it returns False.
     """
     iu, full, *_, off, _ = _sym_index(r, n_blocks)
     nv = len(iu[0])
@@ -582,8 +585,14 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
         mu = float(np.sum(X * Lam)) / m
         f_ref = max(abs(f(x)), 1e-300)
         info.setdefault("trace", []).append((a, sigma, m * mu / f_ref))
+        if watch is not None and not watch(x_eps + T * x, m * mu / f_ref):
+            info["stopped"] = "stopped by watch"
+            break
         if m * mu <= gap_tol * f_ref or a < 1e-3:
             gap, lam_min = certify(x_eps + T * x, Lam / (dsc[:, :, None] * dsc[:, None, :]))
+            if not np.isfinite(gap):
+                info["stopped"] = "no certificate for this point"
+                break
             info.update(duality_gap=gap, face_multiplier_min=lam_min)
             if gap <= gap_tol:
                 info["converged"] = True
@@ -603,15 +612,20 @@ def _primal_dual_ipm(H, h, const, r, n_blocks, eps, x_start, *, certify, gap_tol
 def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                      gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
                      max_iter: int = 5000, memory: int = 8, rho0: float = 0.3,
-                     method: str = "auto", ipm_max_iter: int = 40) -> tuple[np.ndarray, dict]:
+                     method: str = "auto", ipm_max_iter: int = 40,
+                     eliminate: bool = True) -> tuple[np.ndarray, dict]:
     """min f(Theta) = ||Theta L + Z||_F^2 over Theta = [S_1 .. S_b], S_k = S_k^T >= eps I.
 
     In the vech unknowns x, f = x^T H x + 2 h^T x + ||Z||^2 (:func:`symmetric_normal_equations`).
 
     1. The symmetric minimiser H x = -h; if every block is >= eps I it is the answer.
     2. ``method="auto"``: a primal-dual interior point method (:func:`_primal_dual_ipm`,
-       10-20 iterations of one Cholesky each) until the certificate of step 5 proves the
-       gap. If it does not (or ``method="admm"``), steps 3-5:
+       7-10 iterations of one Cholesky each) until the certificate of step 5 proves the
+       gap. With ``eliminate`` it is first tried on the blocks whose symmetric minimiser is
+       not >= eps I only, the others minimised out exactly (``ipm_on_active_blocks``; the
+       common case of a well-determined stiffness and a weakly determined damping: a Schur
+       matrix of half the size); kept only when the recovered blocks are >= eps I and the
+       full problem's certificate holds. If no certificate (or ``method="admm"``), steps 3-5:
     3. ADMM on x = w (w in the cone), Anderson-accelerated (type II, safeguarded): x-step
        (2 H + rho D) x = -2 h + rho D (w - y) (R^-1 of one Cholesky per rho), w-step
        eigenvalue clipping of every block (one batched ``eigh``), rho by residual balancing.
@@ -830,9 +844,60 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
                 return None
         return x, gap
 
+    def ipm_on_active_blocks(feasible):
+        """The interior point on the blocks whose unconstrained minimiser is not >= eps I, the
+        others (``feasible``, presumed inactive at the optimum) minimised out exactly:
+        x_f = -H_ff^-1 (h_f + H_fa x_a), leaving x_a^T (H_aa - H_af H_ff^-1 H_fa) x_a + ... on the
+        active blocks - a Schur matrix of half the size (one eighth of the Cholesky). With zero
+        multipliers on the eliminated blocks the full problem's dual bound is the reduced one,
+        so ``dual_gap`` of the full x proves the answer once the eliminated blocks are checked
+        >= eps I; if they are not (the presumption was wrong), None."""
+        pos = np.arange(n).reshape(n_blocks, nv)
+        a_idx, f_idx = pos[~feasible].ravel(), pos[feasible].ravel()
+        Hff = _SPDSolver(H[np.ix_(f_idx, f_idx)])
+        if not Hff.ok:
+            return None
+        Hfa = H[np.ix_(f_idx, a_idx)]
+        W = Hff.solve(np.column_stack([Hfa, h[f_idx]]))  # H_ff^-1 [H_fa, h_f]
+        Hr = H[np.ix_(a_idx, a_idx)] - Hfa.T @ W[:, :-1]
+        hr = h[a_idx] - Hfa.T @ W[:, -1]
+
+        def full(xa):
+            xf = np.empty(n)
+            xf[a_idx], xf[f_idx] = xa, -(W[:, -1] + W[:, :-1] @ xa)
+            return xf
+
+        def certify(xa, lam_a):
+            xf = full(xa)
+            if np.linalg.eigvalsh(blocks(xf)[feasible]).min() < eps:
+                return np.nan, np.nan
+            lam = np.zeros((n_blocks, r, r))
+            lam[~feasible] = lam_a
+            return dual_gap(xf, lam)
+        def still_feasible(xa, rel_gap):  # once near the optimum, the eliminated blocks must be
+            return rel_gap > 1e-3 or np.linalg.eigvalsh(blocks(full(xa))[feasible]).min() >= eps
+
+        xa, ip = _primal_dual_ipm(0.5 * (Hr + Hr.T), hr, float(np.sum(Z**2) - h[f_idx] @ W[:, -1]),
+                                  r, int((~feasible).sum()), eps, x[a_idx], certify=certify,
+                                  gap_tol=gap_tol, max_iter=ipm_max_iter, watch=still_feasible)
+        if not ip["converged"]:
+            return None
+        ranks = np.full(n_blocks, r)
+        ranks[~feasible] = ip["ranks"]
+        ip.update(ranks=[int(k) for k in ranks], eliminated_blocks=[int(k) for k in np.flatnonzero(feasible)])
+        return full(xa), ip
+
+    feasible = np.linalg.eigvalsh(blocks(x))[:, 0] >= eps
+    reduced = None
+    if method == "auto" and chol.ok and eliminate and feasible.any():
+        reduced = ipm_on_active_blocks(feasible)
+        info["eliminated_blocks_tried"] = [int(k) for k in np.flatnonzero(feasible)]
     if method == "auto" and chol.ok:  # the certificate needs H > 0
-        x_ip, ip = _primal_dual_ipm(H, h, float(np.sum(Z**2)), r, n_blocks, eps, x,
-                                    certify=dual_gap, gap_tol=gap_tol, max_iter=ipm_max_iter)
+        if reduced is not None:
+            x_ip, ip = reduced
+        else:
+            x_ip, ip = _primal_dual_ipm(H, h, float(np.sum(Z**2)), r, n_blocks, eps, x,
+                                        certify=dual_gap, gap_tol=gap_tol, max_iter=ipm_max_iter)
         if not ip["converged"]:  # crossover: Newton on the face the interior point shows
             S = blocks(x_ip) - eps * np.eye(r)
             w, Q = np.linalg.eigh(S)

@@ -281,3 +281,30 @@ def test_interior_point_crossover_and_fallback_are_certified():
         assert np.sum((theta @ L_S + Z_S) ** 2) == pytest.approx(f_full, rel=2e-8)
     with pytest.raises(ValueError, match="method"):
         lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method="clarabel")
+
+
+@pytest.mark.parametrize("seed,eliminated", [(2, True), (0, False)])
+def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
+    """Only C's symmetric minimiser is indefinite: the interior point first runs on C with K
+    minimised out exactly. Seed 2: K stays > eps I at the optimum, the reduced run is kept
+    and equals the full interior point's answer; seed 0: K is active at the optimum, the
+    reduced run is abandoned and the full one answers. Both certified <= 1e-8."""
+    from dolfinx_lopinf.benchmark import forced_data
+    from dolfinx_lopinf.inference import gram_data
+
+    r = 12
+    g = gram_data(*forced_data(r, 3000, seed=seed))
+    free = np.zeros(g.L.shape[0], dtype=bool)
+    free[-1] = True
+    L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
+    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
+    theta_full, info_full = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, eliminate=False)
+    assert info["eliminated_blocks_tried"] == [0] and "eliminated_blocks_tried" not in info_full
+    assert (info["ipm"].get("eliminated_blocks") == [0]) == eliminated
+    assert info["face_ranks"][0] == r if eliminated else info["face_ranks"][0] < r
+    for res in (info, info_full):
+        assert res["converged"] and res["method"] == "ipm" and res["duality_gap"] <= 1e-8
+    f, f_full = (float(np.sum((t @ L_S + Z_S) ** 2)) for t in (theta, theta_full))
+    assert abs(f - f_full) <= 2e-8 * f_full
+    assert np.linalg.eigvalsh(theta[:, :r]).min() >= 1e-8
+    assert np.linalg.eigvalsh(theta[:, r:]).min() >= 1e-8 - 1e-14 * np.abs(theta[:, r:]).max()
