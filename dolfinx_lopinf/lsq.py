@@ -668,7 +668,8 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
     chol = _SPDSolver(H)
     x = -chol.solve(h)
     info = {"iterations": 0, "polish_attempts": 0}
-    if np.linalg.eigvalsh(blocks(x)).min() >= eps:
+    feasible = np.linalg.eigvalsh(blocks(x))[:, 0] >= eps  # per block: its minimiser is >= eps I
+    if feasible.all():
         info.update(converged=True, method="symmetric-lsq", face_ranks=[r] * n_blocks,
                     duality_gap=0.0, seconds=time.perf_counter() - t0)
         return _theta_from_x(x, r, n_blocks, terms), info
@@ -867,15 +868,19 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
             xf[a_idx], xf[f_idx] = xa, -(W[:, -1] + W[:, :-1] @ xa)
             return xf
 
+        def eliminated_ok(xf):  # the eliminated blocks of a full x are >= eps I
+            return np.linalg.eigvalsh(blocks(xf)[feasible]).min() >= eps
+
         def certify(xa, lam_a):
             xf = full(xa)
-            if np.linalg.eigvalsh(blocks(xf)[feasible]).min() < eps:
+            if not eliminated_ok(xf):
                 return np.nan, np.nan
             lam = np.zeros((n_blocks, r, r))
             lam[~feasible] = lam_a
             return dual_gap(xf, lam)
+
         def still_feasible(xa, rel_gap):  # once near the optimum, the eliminated blocks must be
-            return rel_gap > 1e-3 or np.linalg.eigvalsh(blocks(full(xa))[feasible]).min() >= eps
+            return rel_gap > 1e-3 or eliminated_ok(full(xa))
 
         xa, ip = _primal_dual_ipm(0.5 * (Hr + Hr.T), hr, float(np.sum(Z**2) - h[f_idx] @ W[:, -1]),
                                   r, int((~feasible).sum()), eps, x[a_idx], certify=certify,
@@ -887,7 +892,6 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *,
         ip.update(ranks=[int(k) for k in ranks], eliminated_blocks=[int(k) for k in np.flatnonzero(feasible)])
         return full(xa), ip
 
-    feasible = np.linalg.eigvalsh(blocks(x))[:, 0] >= eps
     reduced = None
     if method == "auto" and chol.ok and eliminate and feasible.any():
         reduced = ipm_on_active_blocks(feasible)
