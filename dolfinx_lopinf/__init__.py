@@ -17,7 +17,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
-from . import ddt
+from . import ddt, errors
 from .basis import Basis, pod
 from .ddt import derivatives, newmark_data, variational_data
 from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
@@ -49,6 +49,6 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+__all__ = ["errors", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
            "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

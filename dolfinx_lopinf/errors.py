@@ -1,0 +1,51 @@
+"""The package's errors and warnings (numpy core and DOLFINx layer alike).
+
+Every error raised at a public entry point is one of these, so callers can catch the
+package's complaints without catching unrelated bugs, and filter its warnings without
+silencing everybody else's::
+
+    import warnings, dolfinx_lopinf as lo
+    warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
+
+The error classes also derive from the builtin class the same complaint used to raise
+(``ValueError``, ``RuntimeError``, ``OSError``), so existing ``except ValueError`` code keeps
+working.
+"""
+
+from __future__ import annotations
+
+
+class LOpInfError(Exception):
+    """Base class of every error the package raises on purpose."""
+
+
+class InputError(LOpInfError, ValueError):
+    """An argument is wrong (shape, dtype, finiteness, space, time grid, ...): the message
+    names the argument, the offending value and the remedy."""
+
+
+class RankDeficientDataError(InputError):
+    """The data do not determine the operators (raised with ``strict=True``, or when a data
+    row is identically zero)."""
+
+
+class FileFormatError(LOpInfError, OSError):
+    """A file is not one of ours, is truncated or corrupt, or lacks a required entry."""
+
+
+class CheckpointMismatchError(InputError):
+    """A checkpoint belongs to another run (its fingerprint differs from this run's)."""
+
+
+class LOpInfWarning(UserWarning):
+    """Base class of the package's warnings."""
+
+
+class IllConditionedDataWarning(LOpInfWarning, RuntimeWarning):
+    """The data determine some operator directions only to within rounding; the fit was
+    regularised there (see :func:`dolfinx_lopinf.inference.gram_data`)."""
+
+
+class SolverWarning(LOpInfWarning, RuntimeWarning):
+    """A solver stopped without meeting its tolerance; the result is returned with its
+    certificate."""
