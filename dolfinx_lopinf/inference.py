@@ -44,6 +44,7 @@ import scipy.linalg
 
 from . import lsq
 from ._checks import check_matrix
+from .errors import IllConditionedDataWarning, InputError, RankDeficientDataError, SolverWarning
 
 
 @functools.lru_cache(maxsize=1)
@@ -82,16 +83,36 @@ class MechanicalOperators:
     certificate: dict = field(default_factory=dict)
 
 
+#: Relative Tikhonov parameter of every fit (see :func:`gram_data`): directions of the
+#: row-normalised data whose singular value is below ``RIDGE`` times the largest are not
+#: determined by double-precision data; the ridge decides them (towards zero) instead of
+#: rounding.
+RIDGE = 1e-9
+#: Singular values below ``RANK_RTOL`` times the largest count as "not determined by the
+#: data" in the warning (and the error with ``strict=True``). Five decades above rounding
+#: (~1e-16), so a different BLAS cannot move a well-determined problem across it.
+RANK_RTOL = 1e-10
+
+
 @dataclass(frozen=True)
 class GramData:
     """The data of the least-squares problem after one pass over K snapshots.
 
+    The problem is the ridge-regularised least squares
+
+        min  ||Theta D + ddQh||_F^2 + gamma^2 ||Theta diag(s)||_F^2,    gamma = ridge * sigma_1,
+
+    with s the row norms of D = [Qh; dQh; U] and sigma_1 the largest singular value of the
+    row-normalised data diag(1/s) D. Its normal matrix is G = D D^T + gamma^2 diag(s)^2 = L L^T.
+
     Attributes:
-        L: (p, p) lower-triangular factor of G = D D^T (from a QR of D^T).
-        Z: (r, p) = ddQh D^T L^{-T}.
-        condition: condition number of the row-normalised data matrix.
+        L: (p, p) lower-triangular factor of G.
+        Z: (r, p) such that the objective is ||Theta L + Z||_F^2 + target_norm2 - ||Z||_F^2.
         target_norm2: ||ddQh||_F^2.
         r, m: reduced and input dimensions; ``has_damping`` tells whether dQh is in D.
+        condition: condition number of the row-normalised data matrix (before the ridge).
+        rank: number of its singular values above ``RANK_RTOL`` times the largest.
+        ridge_weights: (p,) gamma * s, so the ridge term is ||Theta * ridge_weights||_F^2.
     """
 
     L: np.ndarray
@@ -101,6 +122,14 @@ class GramData:
     m: int
     has_damping: bool
     condition: float = float("nan")
+    rank: int = -1
+    ridge_weights: np.ndarray | None = None
+
+    def data_objective(self, theta: np.ndarray) -> float:
+        """||Theta D + ddQh||_F^2, the misfit without the ridge term."""
+        ridge = 0.0 if self.ridge_weights is None else np.sum((theta * self.ridge_weights) ** 2)
+        return float(np.sum((theta @ self.L + self.Z) ** 2) + self.target_norm2
+                     - np.sum(self.Z**2) - ridge)
 
 
 def _data_matrix(Qh, dQh, ddQh, U, damping):
@@ -110,7 +139,7 @@ def _data_matrix(Qh, dQh, ddQh, U, damping):
     rows = [Qh]
     if damping:
         if dQh is None:
-            raise ValueError("damping=True needs the first derivatives dQh")
+            raise InputError("damping=True needs the first derivatives dQh")
         rows.append(check_matrix(dQh, "dQh", rows=r, cols=K))
     m = 0
     if U is not None:
@@ -119,57 +148,104 @@ def _data_matrix(Qh, dQh, ddQh, U, damping):
         rows.append(U)
     p = sum(block.shape[0] for block in rows)
     if K < p:
-        raise ValueError(
+        raise InputError(
             f"{K} snapshots cannot determine {p} unknowns per row; record more "
             "time samples or lower r"
         )
     return rows, ddQh, r, m
 
 
-def gram_data(Qh, dQh, ddQh, U=None, *, damping=True) -> GramData:
-    """Form the compressed least-squares data (one pass over the snapshots).
+def _row_norms(A: np.ndarray) -> np.ndarray:
+    """Euclidean row norms without overflow or underflow (data scaled by 1e+-160 included)."""
+    big = np.abs(A).max(axis=1)
+    safe = np.where(big > 0, big, 1.0)
+    return big * np.linalg.norm(A / safe[:, None], axis=1)
 
-    Raises ``ValueError`` with the rank and condition number when D = [Qh; dQh; U] is
-    rank deficient, because then the operators are not determined by the data.
+
+def _block_names(r, m, damping):
+    names = [f"Qh[{i}]" for i in range(r)]
+    names += [f"dQh[{i}]" for i in range(r)] if damping else []
+    return names + [f"U[{i}]" for i in range(m)]
+
+
+def gram_data(Qh, dQh, ddQh, U=None, *, damping=True, ridge: float = RIDGE,
+              strict: bool = False) -> GramData:
+    """Form the compressed, ridge-regularised least-squares data (one pass over the snapshots).
+
+    Rank and conditioning. POD coordinates span many decades and the paper's block basis makes
+    [Qh; dQh] nearly singular (theta ~ w'), so whether the smallest singular value of the data
+    lies just above or just below a rank threshold is decided by rounding (the BLAS, the
+    thread count, the MPI layout). No result may hinge on that. Hence:
+
+    * the fit always carries the ridge gamma^2 ||Theta diag(s)||^2 with gamma = ``ridge`` *
+      sigma_1 (row-normalised data): it changes directions with singular value
+      sigma >> gamma by a relative (gamma / sigma)^2 (<= 1e-8 for sigma >= 1e-5 sigma_1 at the
+      default 1e-9) and decides the directions the data do not see (sigma <~ gamma) towards
+      zero - a unique, stable answer that depends continuously on the data;
+    * directions with sigma < ``RANK_RTOL`` sigma_1 are reported: one
+      :class:`~dolfinx_lopinf.errors.IllConditionedDataWarning` naming the rank, the condition
+      number and what was done; ``strict=True`` raises
+      :class:`~dolfinx_lopinf.errors.RankDeficientDataError` instead.
+
+    ``ridge=0`` gives the plain least squares (it fails on singular data).
     """
+    if not (np.isfinite(ridge) and 0 <= ridge < 1):
+        raise InputError(f"ridge must be a number in [0, 1), got {ridge!r}")
     rows, ddQh, r, m = _data_matrix(Qh, dQh, ddQh, U, damping)
-    # Row-normalised data Dn = diag(1/s) D, D = [Qh; dQh; U] (p x K). One Householder QR of
-    # the augmented tall matrix [Dn^T, ddQh^T] (K x (p + r)), Q never formed: its leading
-    # p x p block is R (Dn^T = Qf R) and the block beside it is Qf^T ddQh^T = Z^T. Then
-    # G = D D^T = L L^T with L = diag(s) R^T - exact for any conditioning (the condition
-    # number is never squared; POD coordinates span many decades), one LAPACK call on one
-    # Fortran-ordered copy of the data, O(K (p + r)^2).
-    scale = np.concatenate([np.linalg.norm(block, axis=1) for block in rows])
+    if not np.any(ddQh):
+        raise InputError(
+            "the target (ddQh, the second derivatives, plus Fh for waves) is identically zero: "
+            "static or empty snapshots carry no dynamics to fit; record a trajectory that moves")
+    L, Z, cond, rank, weights = _compress(rows, ddQh, _block_names(r, m, damping), ridge, strict,
+                                          "[Qh; dQh; U]")
+    return GramData(L, Z, float(np.sum(ddQh**2)), r, m, damping, cond, rank, weights)
+
+
+def _compress(rows, target, names, ridge, strict, what):
+    """(L, Z, condition, rank, ridge weights) of min ||Theta D + target||^2 + gamma^2
+    ||Theta diag(s)||^2 with D = vstack(rows); see :func:`gram_data`."""
+    scale = np.concatenate([_row_norms(block) for block in rows])
     if np.any(scale == 0):
-        raise ValueError(f"data rows {np.flatnonzero(scale == 0).tolist()} of [Qh; dQh; U] are zero")
-    p, K = len(scale), ddQh.shape[1]
+        zero = [names[i] for i in np.flatnonzero(scale == 0)]
+        raise RankDeficientDataError(
+            f"data rows {zero} of {what} are identically zero, so the operator entries "
+            "that multiply them are not determined by the data; lower r to the rank of the "
+            "snapshots (a zero POD coordinate means r exceeds it) or drop the zero input")
+    # Row-normalised data Dn = diag(1/s) D (p x K). One Householder QR of the augmented tall
+    # matrix [Dn^T, target^T] (K x (p + r)), Q never formed: its leading p x p block is R
+    # (Dn^T = Qf R) and the block beside it is Qf^T target^T = Z^T. Then D D^T = L L^T with
+    # L = diag(s) R^T - exact for any conditioning (the condition number is never squared;
+    # POD coordinates span many decades), one LAPACK call on one Fortran-ordered copy of the
+    # data, O(K (p + r)^2). The ridge appends rows gamma I to Dn^T (0 to target^T): one more
+    # QR of a (2p) x (p + r) matrix.
+    p, r, K = len(scale), target.shape[0], target.shape[1]
     A = np.empty((K, p + r), order="F")
     start = 0
     for block in rows:
         A[:, start:start + block.shape[0]] = block.T / scale[start:start + block.shape[0]]
         start += block.shape[0]
-    A[:, p:] = ddQh.T
-    R_aug = scipy.linalg.qr(A, mode="r", overwrite_a=True, check_finite=False)[0]
-    R, Z = R_aug[:p, :p], R_aug[:p, p:].T
-    sv = np.linalg.svd(R, compute_uv=False)
-    cond = sv[0] / max(sv[-1], np.finfo(float).tiny)
-    # Rank deficient = singular at double precision. Block-diagonal POD makes the data badly
-    # conditioned but not singular (theta = w' couples the blocks): 1e12 is normal there.
-    tol = sv[0] * 50 * np.finfo(float).eps
-    if sv[-1] <= tol:
-        rank = int((sv > tol).sum())
-        raise ValueError(
-            f"the data matrix [Qh; dQh; U] has numerical rank {rank} < {p} "
-            f"(condition number {cond:.3g}); the operators are not determined by the data - "
-            "lower r, record a richer trajectory or drop a block"
-        )
-    if cond > 1e13:
-        warnings.warn(
-            f"the data matrix [Qh; dQh; U] is ill-conditioned (condition number {cond:.3g}); the "
-            "fitted operators may be sensitive to noise - consider a smaller r", RuntimeWarning,
-            stacklevel=3)
-    L = scale[:, None] * R.T
-    return GramData(L, Z, float(np.sum(ddQh**2)), r, m, damping, float(cond))
+    A[:, p:] = target.T
+    R_aug = scipy.linalg.qr(A, mode="r", overwrite_a=True, check_finite=False)[0][:p]
+    sv = np.linalg.svd(R_aug[:, :p], compute_uv=False)
+    cond = float(sv[0] / max(sv[-1], np.finfo(float).tiny))
+    rank = int((sv > RANK_RTOL * sv[0]).sum())
+    gamma = ridge * sv[0]
+    if gamma > 0:
+        R_aug = scipy.linalg.qr(np.vstack([R_aug, np.hstack([gamma * np.eye(p), np.zeros((p, r))])]),
+                                mode="r", check_finite=False)[0][:p]
+    if rank < p:
+        msg = (f"the data matrix {what} ({p} rows, row-normalised) has numerical rank "
+               f"{rank} < {p} at relative tolerance {RANK_RTOL:g} (condition number {cond:.3g}):"
+               " some operator directions are not determined by the data")
+        if strict:
+            raise RankDeficientDataError(msg + "; lower r, record a richer trajectory or drop a "
+                                         "block (or call without strict=True to regularise)")
+        warnings.warn(msg + f"; they were fixed by the ridge {ridge:g} * sigma_1 (Tikhonov, "
+                      "towards zero) with the constraints kept. Pass strict=True to raise "
+                      "instead, or lower r for a fit the data determine alone.",
+                      IllConditionedDataWarning, stacklevel=4)
+    L = scale[:, None] * R_aug[:, :p].T
+    return L, R_aug[:, p:].T, cond, rank, (gamma * scale if gamma > 0 else None)
 
 
 def _split_theta(theta, r, m, has_damping):
@@ -180,17 +256,22 @@ def _split_theta(theta, r, m, has_damping):
 
 
 def _objective(gram: GramData, theta: np.ndarray) -> float:
+    """The objective the solvers minimise: data misfit + ridge term."""
     return float(np.sum((theta @ gram.L + gram.Z) ** 2) + gram.target_norm2 - np.sum(gram.Z**2))
 
 
 def _certificate(gram, K, C, B, solver, status, seconds, eps):
     theta = np.hstack([K] + ([C] if C is not None else []) + ([-B] if B is not None else []))
     obj = max(_objective(gram, theta), 0.0)
+    misfit = max(gram.data_objective(theta), 0.0)
     cert = {
         "solver": solver,
         "status": status,
         "objective": obj,
-        "relative_residual": float(np.sqrt(obj / gram.target_norm2)),
+        "data_misfit": misfit,
+        "relative_residual": float(np.sqrt(misfit / gram.target_norm2)),
+        "data_rank": gram.rank,
+        "data_rows": int(gram.L.shape[0]),
         "symmetry_error": float(np.abs(K - K.T).max() / max(np.abs(K).max(), 1e-300)),
         "min_eig_K": float(np.linalg.eigvalsh(0.5 * (K + K.T)).min()),
         "seconds": seconds,
@@ -204,7 +285,8 @@ def _certificate(gram, K, C, B, solver, status, seconds, eps):
 
 @_serial_blas
 def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool = True,
-                     solver: str = "auto") -> MechanicalOperators:
+                     solver: str = "auto", ridge: float = RIDGE,
+                     strict: bool = False) -> MechanicalOperators:
     """L-OpInf for qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I.
 
     Args:
@@ -215,6 +297,10 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         eps: lower bound on the eigenvalues of Kh (and Ch).
         damping: fit Ch too; ``False`` gives the conservative form (Kh, and Bh with inputs).
         solver: ``"auto"`` or ``"cvxpy"`` (Clarabel on the compressed problem).
+        ridge: relative Tikhonov parameter that decides the directions the data do not
+            determine (see :func:`gram_data`); 0 turns it off.
+        strict: raise :class:`~dolfinx_lopinf.errors.RankDeficientDataError` when the data
+            do not determine every operator entry, instead of warning and regularising.
 
     Returns:
         :class:`MechanicalOperators` with a certificate; warns if the solver did not reach
@@ -232,18 +318,52 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise ValueError(f"unknown solver {solver!r}; choose 'auto', 'lyapunov', 'admm' or 'cvxpy'")
     if not (np.isfinite(eps) and eps >= 0):
         raise ValueError(f"eps must be a finite number >= 0, got {eps}")
-    gram = gram_data(Qh, dQh, ddQh, U, damping=damping)
+    (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
+    gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
     if solver == "lyapunov" and not conservative:
         raise ValueError("solver='lyapunov' handles the conservative, unforced fit only "
                          "(damping=False, U=None); use 'auto' (ADMM) or 'cvxpy'")
     if solver == "cvxpy":
-        return _solve_cvxpy(gram, eps)
-    if conservative and solver in ("auto", "lyapunov"):
+        ops = _solve_cvxpy(gram, eps)
+    elif conservative and solver in ("auto", "lyapunov"):
         ops = _solve_lyapunov(gram, eps)
-        if solver == "lyapunov" or ops.certificate["min_eig_K"] >= eps:
-            return ops
-    return _solve_constrained(gram, eps)
+        if solver != "lyapunov" and ops.certificate["min_eig_K"] < eps:
+            ops = _solve_constrained(gram, eps)
+    else:
+        ops = _solve_constrained(gram, eps)
+    return _unscaled(ops, c_state, c_input)
+
+
+def _pow2_scale(*arrays) -> float:
+    """The power of two nearest to max |entries| (1 for all-zero data): dividing by it is exact."""
+    big = max((float(np.abs(a).max()) for a in arrays if a is not None and a.size), default=0.0)
+    return 1.0 if big == 0 or not np.isfinite(big) else float(2.0 ** np.round(np.log2(big)))
+
+
+def _unit_scaled(Qh, dQh, ddQh, U):
+    """Take the state and input units out of the data, exactly (powers of two), so that data
+    in any units - 1e160 or 1e-170 included - neither overflow nor underflow. K and C are
+    invariant under a common scaling of Qh, dQh and ddQh; B scales by c_state / c_input."""
+    arrays = [None if a is None else check_matrix(a, name)
+              for a, name in ((Qh, "Qh"), (dQh, "dQh"), (ddQh, "ddQh"))]
+    U = None if U is None else check_matrix(np.atleast_2d(U), "U")
+    c_state = _pow2_scale(*arrays)
+    c_input = _pow2_scale(U)
+    arrays = [None if a is None else np.asarray(a) / c_state for a in arrays]
+    return (*arrays, None if U is None else U / c_input), c_state, c_input
+
+
+def _unscaled(ops: MechanicalOperators, c_state: float, c_input: float) -> MechanicalOperators:
+    if c_state == 1.0 and c_input == 1.0:
+        return ops
+    cert = dict(ops.certificate)
+    with np.errstate(over="ignore"):  # the squared misfit in user units may pass 1e308
+        for key in ("objective", "data_misfit"):
+            if key in cert:
+                cert[key] = float(np.float64(cert[key]) * c_state * c_state)
+    B = None if ops.B is None else ops.B * (c_state / c_input)
+    return MechanicalOperators(ops.K, ops.C, B, cert)
 
 
 def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
@@ -363,23 +483,28 @@ def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
 
 
 @_serial_blas
-def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True) -> MechanicalOperators:
+def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True, ridge: float = RIDGE,
+                strict: bool = False) -> MechanicalOperators:
     """Standard second-order OpInf: unconstrained least squares for [Kh, Ch, Bh].
 
     The baseline L-OpInf is compared against: it fits the training data, but Kh is
-    neither symmetric nor definite, so the ROM carries no Lagrangian structure.
+    neither symmetric nor definite, so the ROM carries no Lagrangian structure. The same
+    ridge-regularised problem as L-OpInf (:func:`gram_data`), without constraints:
+    Theta = -Z L^{-1}.
     """
-    rows, ddQh, r, m = _data_matrix(Qh, dQh, ddQh, U, damping)
+    (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
+    gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     t0 = time.perf_counter()
-    theta = -np.linalg.lstsq(np.vstack(rows).T, ddQh.T, rcond=None)[0].T
+    theta = -scipy.linalg.solve_triangular(gram.L, gram.Z.T, trans="T", lower=True).T
     seconds = time.perf_counter() - t0
-    K, C, B = _split_theta(theta, r, m, damping)
-    gram = gram_data(Qh, dQh, ddQh, U, damping=damping)
-    return MechanicalOperators(K, C, B, _certificate(gram, K, C, B, "lstsq", "optimal", seconds, None))
+    K, C, B = _split_theta(theta, gram.r, gram.m, damping)
+    ops = MechanicalOperators(K, C, B, _certificate(gram, K, C, B, "lstsq", "optimal", seconds, None))
+    return _unscaled(ops, c_state, c_input)
 
 
 @_serial_blas
-def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False) -> MechanicalOperators:
+def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False, ridge: float = RIDGE,
+               strict: bool = False) -> MechanicalOperators:
     """Symmetric Kh of the gray-box wave ROM qh_tt = Kh qh - Fh (METHOD.md section 4).
 
     Args:
@@ -388,6 +513,7 @@ def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False) -> Mechanic
         negative_semidefinite: also require Kh <= 0. The paper asks only for symmetry; but
             -Kh is a reduced discrete Laplacian, and a symmetric Kh with a positive
             eigenvalue makes the linear part of the ROM grow exponentially.
+        ridge, strict: as in :func:`infer_mechanical`.
 
     Returns:
         :class:`MechanicalOperators` with ``K`` = Kh (symmetric, unique when Qh has full
@@ -399,19 +525,28 @@ def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False) -> Mechanic
     # qh_tt = Kh qh - Fh  <=>  ddQh + Fh + (-Kh) Qh = 0: the mechanical form with K -> -Kh
     target = check_matrix(ddQh, "ddQh", rows=r, cols=K) + Fh
     if negative_semidefinite:  # -Kh >= 0: the conservative mechanical fit with eps = 0
-        ops = infer_mechanical(Qh, None, target, damping=False, eps=0.0)
+        ops = infer_mechanical(Qh, None, target, damping=False, eps=0.0, ridge=ridge,
+                               strict=strict)
         cert = dict(ops.certificate, max_eig_K=float(np.linalg.eigvalsh(-ops.K).max()))
         return MechanicalOperators(-ops.K, None, None, cert)
-    gram = gram_data(Qh, None, target, damping=False)
-    ops = _solve_lyapunov(gram, -np.inf)
+    (Qh, _, target, _), c_state, _ = _unit_scaled(Qh, None, target, None)
+    gram = gram_data(Qh, None, target, damping=False, ridge=ridge, strict=strict)
+    ops = _unscaled(_solve_lyapunov(gram, -np.inf), c_state, 1.0)
     Kh = -ops.K
     cert = dict(ops.certificate, min_eig_K=float(np.linalg.eigvalsh(Kh).min()), status="optimal")
     return MechanicalOperators(Kh, None, None, cert)
 
 
 @_serial_blas
-def infer_output(Qh, Y) -> np.ndarray:
-    """Output operator Eh = argmin ||Y - Eh Qh||_F, (p, r) from Qh (r, K) and Y (p, K)."""
+def infer_output(Qh, Y, *, ridge: float = RIDGE, strict: bool = False) -> np.ndarray:
+    """Output operator Eh = argmin ||Y - Eh Qh||_F^2 (+ the ridge of :func:`gram_data`),
+    (p, r) from Qh (r, K) and Y (p, K)."""
     Qh = check_matrix(Qh, "Qh")
     Y = check_matrix(np.atleast_2d(Y), "Y", cols=Qh.shape[1])
-    return np.linalg.lstsq(Qh.T, Y.T, rcond=None)[0].T
+    c_state, c_out = _pow2_scale(Qh), _pow2_scale(Y)
+    if not np.any(Y):
+        return np.zeros((Y.shape[0], Qh.shape[0]))
+    L, Z, *_ = _compress([Qh / c_state], -Y / c_out, [f"Qh[{i}]" for i in range(Qh.shape[0])],
+                         ridge, strict, "Qh")
+    E = -scipy.linalg.solve_triangular(L, Z.T, trans="T", lower=True).T
+    return E * (c_out / c_state)

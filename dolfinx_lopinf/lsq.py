@@ -49,12 +49,21 @@ def _clip(A: np.ndarray, eps: float) -> np.ndarray:
     return (Q * np.maximum(w, eps)) @ Q.T
 
 
+def _lyapunov_rhs(L: np.ndarray, Z: np.ndarray):
+    """SVD L = U diag(s) W^T and B = U^T (X + X^T) U with X = Z L^T, formed as
+    Zt diag(s) + (Zt diag(s))^T from Zt = U^T Z W: the rounding of B in direction (i, j) is
+    then ~ u ||Z|| max(s_i, s_j), not u ||Z|| s_1, so the solution in directions with small
+    s (weakly determined by the data, fixed by the ridge) is not lost to rounding."""
+    U, s, Wt = np.linalg.svd(L)
+    Zs = (U.T @ Z @ Wt.T) * s[None, :]
+    return U, s, Zs + Zs.T
+
+
 def solve_symmetric(L: np.ndarray, Z: np.ndarray) -> np.ndarray:
-    """argmin over symmetric K (r, r) of ||K L + Z||_F (L is r x r): the Lyapunov solution."""
-    U, s, _ = np.linalg.svd(L)
-    X = Z @ L.T
-    rhs = -U.T @ (X + X.T) @ U
-    K = U @ (rhs / (s[:, None] ** 2 + s[None, :] ** 2)) @ U.T
+    """argmin over symmetric K (r, r) of ||K L + Z||_F (L is r x r): the Lyapunov solution
+    G K + K G = -(X + X^T), exact in the eigenbasis of G = L L^T."""
+    U, s, B = _lyapunov_rhs(L, Z)
+    K = U @ (-B / (s[:, None] ** 2 + s[None, :] ** 2)) @ U.T
     return 0.5 * (K + K.T)
 
 
@@ -94,11 +103,9 @@ def solve_psd_single(L: np.ndarray, Z: np.ndarray, eps: float, *, start=None, to
     the conditioning of G; W-step: eigenvalue clipping of K + Y at eps.
     """
     t0 = time.perf_counter()
-    U, s, _ = np.linalg.svd(L)
+    U, s, B = _lyapunov_rhs(L, Z)
     lam = s**2
-    X = Z @ L.T
-    B = U.T @ (X + X.T) @ U
-    start = solve_symmetric(L, Z) if start is None else start
+    start = U @ (-B / (lam[:, None] + lam[None, :])) @ U.T if start is None else start
     Wt = U.T @ _clip(start, eps) @ U
     Yt = np.zeros_like(Wt)
     rho = float(np.sqrt(lam.max() * max(lam.min(), lam.max() * 1e-16)))

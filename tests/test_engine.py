@@ -156,9 +156,11 @@ def test_bad_inputs_are_named():
     bad[1, 5] = np.inf
     with pytest.raises(ValueError, match="non-finite"):
         lo.infer_mechanical(bad, dQh, ddQh, U)
-    with pytest.raises(ValueError, match="rank"):
-        lo.infer_mechanical(np.vstack([Qh, Qh[:1]]), np.vstack([dQh, dQh[:1]]),
-                            np.vstack([ddQh, ddQh[:1]]), U)
+    dup = (np.vstack([Qh, Qh[:1]]), np.vstack([dQh, dQh[:1]]), np.vstack([ddQh, ddQh[:1]]), U)
+    with pytest.raises(lo.errors.RankDeficientDataError, match="rank 7 < 9"):
+        lo.infer_mechanical(*dup, strict=True)
+    with pytest.warns(lo.errors.IllConditionedDataWarning, match="rank 7 < 9"):
+        lo.infer_mechanical(*dup)
     with pytest.raises(ValueError, match="unknown solver"):
         lo.infer_mechanical(Qh, dQh, ddQh, U, solver="sdpt3")
     rom = lo.LagrangianROM(K=np.eye(3), B=np.ones((3, 1)))
