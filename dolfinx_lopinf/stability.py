@@ -8,7 +8,8 @@ Cases (beam: the paper's scene, block POD, r = 10, trained on [0, 0.03] s, run t
 * snapshots with 1e-4 and 1e-3 relative noise (differenced on every 10th sample, i.e.
   dt = 1e-4, since 8th-order differences at 1e-5 amplify noise by ~1e10);
 * badly scaled blocks (theta multiplied by 1e8);
-* a forced cantilever (dolfinx code of demos/existing_code.py) driven by a hard step load;
+* a forced cantilever (scenes/cantilever.py, the model of demos/existing_code.py) driven by a
+  hard step load;
 * sine-Gordon FOM with a too large time step (must fail clearly);
 * rank-deficient training data (must fail clearly).
 
@@ -116,12 +117,7 @@ def main(argv=None):
 
 
 def _step_case():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location(
-        "existing_code", Path(__file__).resolve().parents[1] / "demos" / "existing_code.py")
-    demo = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(demo)
+    from .scenes import cantilever
     from . import LagrangianROM, derivatives, infer_mechanical, infer_output, pod, relative_error
     from . import SnapshotRecorder, point_output_matrix
 
@@ -129,17 +125,17 @@ def _step_case():
         return 1.0 if t >= 0.2 else 0.0
 
     def factory(q):
-        E = point_output_matrix(q.function_space, np.array([[demo.LENGTH, 0.05, 0.05]]), component=2)
+        E = point_output_matrix(q.function_space, np.array([[cantilever.LENGTH, 0.05, 0.05]]), component=2)
         return SnapshotRecorder(q, output_matrix=E)
 
-    _, rec_train, _ = demo.simulate_cantilever(demo.train_load, 1.0, (12, 2, 2), factory)
-    _, rec_test, _ = demo.simulate_cantilever(hard_step, 1.0, (12, 2, 2), factory)
+    _, rec_train, _ = cantilever.simulate(cantilever.train_load, 1.0, (12, 2, 2), factory)
+    _, rec_test, _ = cantilever.simulate(hard_step, 1.0, (12, 2, 2), factory)
     train, test = rec_train.snapshots(), rec_test.snapshots()
     basis = pod(train.Q, 8)
     Qh_all = basis.project(train.Q)
     ops = infer_mechanical(*derivatives(Qh_all, train.times), train.U[:, 4:-4])
     rom = LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=infer_output(Qh_all, train.Y), scheme="newmark")
-    tr = rom.simulate(np.zeros(8), np.zeros(8), demo.DT, len(test.times) - 1,
+    tr = rom.simulate(np.zeros(8), np.zeros(8), cantilever.DT, len(test.times) - 1,
                       inputs=lambda t: np.array([hard_step(t)]))
     err = relative_error(test.Y, tr.Y)
     return {"result": "bounded" if np.all(np.isfinite(tr.Qh)) else "blown up", "test_error": err}

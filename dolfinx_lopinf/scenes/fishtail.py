@@ -24,13 +24,13 @@ Output: the lateral (x) displacement of the rear tip of the beam, (0, 0, 0.21) m
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from .._dolfinx import MPI, PETSc, dolfinx, ufl
 from ..fom import point_output_matrix
 from ..lagrangian import LagrangianSystem
+from . import fishtail_geometry as geometry
 
 HULL = dict(lam=2.03e5, mu=8.45e3, rho=1.07e3)
 #: hull densities: a silicone's (used by default) and the value the paper prints
@@ -75,26 +75,13 @@ class Fishtail:
         return np.array([u_pre + u, u_pre - u])
 
 
-def _geometry():
-    """The gmsh script meshes/fishtail.py as a module."""
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[2] / "meshes" / "fishtail.py"
-    spec = importlib.util.spec_from_file_location("lopinf_fishtail_geometry", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-#: element sizes of meshes/fishtail.py: "small", "default", "large"
-SIZES = dict(_geometry().SIZES)
+#: element sizes of the geometry (:mod:`.fishtail_geometry`): "small", "default", "large"
+SIZES = dict(geometry.SIZES)
 
 
 def mesh(lc: float, comm=MPI.COMM_WORLD):
-    """Mesh the geometry of meshes/fishtail.py with element size lc (gmsh on rank 0)."""
+    """Mesh the geometry of :mod:`.fishtail_geometry` with element size lc (gmsh on rank 0)."""
     import gmsh
-
-    geometry = _geometry()
 
     if comm.rank == 0:
         gmsh.initialize()
