@@ -49,3 +49,8 @@ class IllConditionedDataWarning(LOpInfWarning, RuntimeWarning):
 class SolverWarning(LOpInfWarning, RuntimeWarning):
     """A solver stopped without meeting its tolerance; the result is returned with its
     certificate."""
+
+
+class InputCorrectedWarning(LOpInfWarning):
+    """An input was made consistent rather than refused (e.g. an initial state moved onto its
+    Dirichlet conditions); the message says what changed and by how much."""
