@@ -26,13 +26,94 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ._dolfinx import dolfinx, ufl
+import numpy as np
+
+from ._dolfinx import MPI, dolfinx, ufl
+from .errors import InputError
 
 
 def _as_function(obj, name):
     if not isinstance(obj, dolfinx.fem.Function):
         raise TypeError(f"{name} must be a dolfinx.fem.Function, got {type(obj).__name__}")
     return obj
+
+
+def _same_dofs(W, V) -> bool:
+    """Whether the (whole) space W has provably the same dofs as V: same mesh object, same
+    element, identical dof maps and index maps on this rank (the caller reduces over ranks)."""
+    Wc, Vc = W, V._cpp_object
+    if list(Wc.component()) or Wc.mesh is not Vc.mesh:
+        return False
+    if Wc.element.signature != Vc.element.signature:
+        return False
+    dw, dv = dolfinx.fem.DofMap(Wc.dofmap), dolfinx.fem.DofMap(Vc.dofmap)
+    iw, iv = dw.index_map, dv.index_map
+    return (dw.index_map_bs == dv.index_map_bs and iw.size_local == iv.size_local
+            and iw.size_global == iv.size_global and np.array_equal(iw.ghosts, iv.ghosts)
+            and np.array_equal(dw.list, dv.list))
+
+
+def _describe_space(W) -> str:
+    comp = list(W.component())
+    sub = f", sub-space {comp}" if comp else ""
+    try:
+        e = W.element.basix_element
+        name = f"{'Lagrange' if e.family.name == 'P' else e.family.name} degree {e.degree}"
+    except (AttributeError, RuntimeError):  # a mixed or blocked element without one basix element
+        name = W.element.signature
+    return f"{name}{sub}, {dolfinx.fem.DofMap(W.dofmap).index_map.size_global} dof blocks"
+
+
+def check_bcs(bcs, V) -> tuple:
+    """The Dirichlet conditions ``bcs`` as conditions on V (collective over V's communicator).
+
+    Every bc must be a ``dolfinx.fem.DirichletBC`` on V or on a sub-space of V (``V.sub(i)``).
+    A bc on a separately created space with provably the same dofs (same mesh object, same
+    element, identical dof map on every rank) and a Constant or Function value is rebuilt on V.
+    Anything else (another mesh, another element such as P2 for a P1 or Hermite system, a
+    collapsed sub-space) is refused: its dof numbers mean other dofs of V, and the matrix
+    assembly would silently drop it while the vector updates applied it.
+    """
+    if isinstance(bcs, dolfinx.fem.DirichletBC):
+        bcs = (bcs,)
+    try:
+        bcs = tuple(bcs)
+    except TypeError:
+        raise InputError(f"bcs must be a sequence of dolfinx.fem.DirichletBC, got "
+                         f"{type(bcs).__name__}") from None
+    comm = V.mesh.comm
+    out = []
+    for i, bc in enumerate(bcs):
+        if not isinstance(bc, dolfinx.fem.DirichletBC):
+            raise InputError(f"bcs[{i}] must be a dolfinx.fem.DirichletBC (from "
+                             f"dolfinx.fem.dirichletbc), got {type(bc).__name__}")
+        W = bc.function_space
+        if V._cpp_object.contains(W):
+            out.append(bc)
+            continue
+        same = bool(comm.allreduce(_same_dofs(W, V), op=MPI.LAND))
+        value = bc.g
+        dofs = np.asarray(bc.dof_indices()[0], dtype=np.int32)
+        bs = V.dofmap.index_map_bs
+        if bs > 1:  # dof_indices() are unrolled; a whole-space bc is built from dof blocks
+            dofs = np.unique(dofs // bs).astype(np.int32)
+        if same and hasattr(value, "value") and not hasattr(value, "x"):  # a Constant
+            val = np.asarray(value.value, dtype=dolfinx.default_scalar_type)
+            out.append(dolfinx.fem.dirichletbc(val if val.ndim else val[()], dofs, V))
+            continue
+        if same and hasattr(value, "x") and value.function_space == W:  # a Function on W
+            g = dolfinx.fem.Function(V)
+            g.x.array[:] = value.x.array
+            out.append(dolfinx.fem.dirichletbc(g, dofs))
+            continue
+        where = "another mesh" if W.mesh is not V._cpp_object.mesh else "another function space"
+        raise InputError(
+            f"bcs[{i}] is defined on {where} ({_describe_space(W)}) than the system's space "
+            f"({_describe_space(V._cpp_object)}): its dof numbers would constrain other dofs, "
+            "and the matrix assembly would drop it while the vector updates applied it. Build it "
+            "on the space of q: dolfinx.fem.dirichletbc(value, dofs, q.function_space) with dofs "
+            "from dolfinx.fem.locate_dofs_topological/geometrical(q.function_space, ...)")
+    return tuple(out)
 
 
 def _depends_on(form, functions) -> bool:
@@ -68,7 +149,8 @@ class LagrangianSystem:
     Args:
         lagrangian: scalar UFL form L(q, q_t) (no test or trial functions).
         q, q_t: the dolfinx Functions L is written in (same space).
-        bcs: homogeneous Dirichlet conditions on q (and so on q_t).
+        bcs: homogeneous Dirichlet conditions on q (and so on q_t), built on the space of q
+            or a sub-space of it (see :func:`check_bcs`; a bc on another space is refused).
         forcing: optional nonconservative virtual work f(q, q_t; dq): a UFL 1-form whose
             single argument is a test function on the same space.
         time: optional ``dolfinx.fem.Constant`` that the forcing depends on; the integrator
@@ -102,7 +184,7 @@ class LagrangianSystem:
             raise ValueError(f"the Lagrangian does not depend on {', '.join(missing)}")
         self.lagrangian = lagrangian
         self.V = q.function_space
-        self.bcs = tuple(bcs)
+        self.bcs = check_bcs(bcs, self.V)
         self.time = time
         self.test = ufl.TestFunction(self.V)
         self.trial = ufl.TrialFunction(self.V)
@@ -120,6 +202,11 @@ class LagrangianSystem:
         self.mass_form = ufl.derivative(self.momentum_form, q_t, du)
         self.stiffness_form = -ufl.derivative(ufl.derivative(lagrangian, q, v), q, du)
         self.energy_form = ufl.derivative(lagrangian, q_t, q_t) - lagrangian
+        if ufl.algorithms.expand_derivatives(self.mass_form).empty():
+            raise InputError(
+                "the Lagrangian has no kinetic energy: d^2 L / dq_t^2 = 0 (L is at most linear in "
+                "q_t), so the mass matrix is zero and the velocity cannot be determined; add the "
+                "kinetic term, e.g. 0.5 * rho * q_t**2 * ufl.dx")
         if _depends_on(self.mass_form, (q, q_t)):
             raise NotImplementedError(
                 "the kinetic energy must be quadratic in q_t with a mass that does not depend on "
