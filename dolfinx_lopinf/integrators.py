@@ -21,10 +21,13 @@ Only homogeneous Dirichlet conditions are supported (checked).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
-from ._dolfinx import PETSc, dolfinx, ufl
-from .lagrangian import LagrangianSystem
+from ._dolfinx import MPI, PETSc, dolfinx, ufl
+from .errors import InputCorrectedWarning, InputError
+from .lagrangian import LagrangianSystem, _same_dofs
 
 fem = dolfinx.fem
 fpetsc = dolfinx.fem.petsc
@@ -54,6 +57,42 @@ def _direct_solver(A, comm, prefix: str, options: dict | None, *, spd: bool = Fa
         pc.setFactorSolverType("petsc")
         ksp.setUp()
     return ksp
+
+
+def _check_dt(dt, what="dt"):
+    try:
+        ok = bool(np.isfinite(float(dt)) and float(dt) > 0)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"{what} must be a positive finite number, got {dt!r}")
+    return float(dt)
+
+
+def _raise_collective(comm, message):
+    """Raise InputError on every rank if any rank has a message (one allgather)."""
+    messages = comm.allgather(message)
+    for m in messages:
+        if m is not None:
+            raise InputError(m)
+
+
+def _check_mass(M, bc_dofs, comm):
+    """The assembled mass matrix must have a positive diagonal on every free dof (else it is
+    singular: no kinetic energy on part of the domain or of the components)."""
+    diag = M.getDiagonal()
+    d = diag.array.copy()
+    diag.destroy()
+    lo, hi = M.getOwnershipRange()
+    free = np.ones(len(d), dtype=bool)
+    owned_bc = bc_dofs[bc_dofs < len(d)]
+    free[owned_bc] = False
+    bad = int(comm.allreduce(int(np.sum(~(d[free] > 0))), op=MPI.SUM))
+    if bad:
+        raise InputError(
+            f"the mass matrix d^2 L / dq_t^2 has a zero, negative or NaN diagonal at {bad} free "
+            "dofs: the kinetic energy does not cover every dof (a term missing on part of the "
+            "domain or for some components). Add the kinetic term there, or constrain those dofs")
 
 
 def _check_homogeneous(bcs, V):
@@ -89,8 +128,9 @@ class MidpointIntegrator:
 
     def __init__(self, system: LagrangianSystem, dt: float, *, petsc_options: dict | None = None,
                  prefix: str = "lopinf_midpoint_"):
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be positive and finite, got {dt}")
+        if not isinstance(system, LagrangianSystem):
+            raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
+        dt = _check_dt(dt)
         self.system, self.dt, self.prefix = system, float(dt), prefix
         V, comm = system.V, system.V.mesh.comm
         _check_homogeneous(system.bcs, V)
@@ -103,12 +143,15 @@ class MidpointIntegrator:
         self._bcs = list(system.bcs)
         self._bc_dofs = np.concatenate([bc.dof_indices()[0] for bc in self._bcs]) if self._bcs else \
             np.zeros(0, dtype=np.int32)
+        n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+        self._bc_dofs_owned_mask = self._bc_dofs < n_owned
         self._residual = fem.form(f.residual)
         self._momentum = fem.form(f.momentum)
         self._jacobian = fem.form(f.d_residual_d_q1)
         # Legendre transform pieces: mass (with bcs) and dL/dq_t at (q, 0).
         self._mass = fpetsc.assemble_matrix(fem.form(system.mass_form), bcs=self._bcs)
         self._mass.assemble()
+        _check_mass(self._mass, self._bc_dofs, comm)
         self._mass_ksp = _direct_solver(self._mass, comm, prefix + "mass_", None)
         self._momentum_at = fem.form(system.momentum_form)
         self._energy = fem.form(system.energy_form)
@@ -180,15 +223,49 @@ class MidpointIntegrator:
             q0, v0: dolfinx Functions on the system's space or local dof arrays.
         """
         sysm = self.system
+        comm = sysm.V.mesh.comm
+        arrays, problem = [], None
         for target, value, name in ((sysm.q, q0, "q0"), (sysm.q_t, v0, "v0")):
-            arr = value.x.array if isinstance(value, fem.Function) else np.asarray(value, float)
+            if isinstance(value, fem.Function):
+                W = value.function_space
+                if W._cpp_object is not sysm.V._cpp_object and not _same_dofs(W._cpp_object, sysm.V):
+                    problem = problem or (f"{name} is a Function on another function space or mesh "
+                                          "than the system's; interpolate it onto the space of q")
+                arr = value.x.array
+            else:
+                try:
+                    arr = np.asarray(value, dtype=float)
+                except (TypeError, ValueError):
+                    arr = np.zeros(0)
+                    problem = problem or f"{name} must be a Function or an array of floats"
             if arr.shape != target.x.array.shape:
-                raise ValueError(f"{name} has {arr.shape[0]} local dofs, the space has "
-                                 f"{target.x.array.shape[0]}")
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"{name} contains NaN or inf")
+                problem = problem or (
+                    f"{name} has shape {arr.shape}, the space has {target.x.array.shape[0]} local "
+                    "dofs (owned + ghosts) on this rank: pass a Function on the system's space or "
+                    "its x.array")
+            elif not np.all(np.isfinite(arr)):
+                problem = problem or f"{name} contains NaN or inf"
+            arrays.append(arr)
+        if comm.size > 1:
+            _raise_collective(comm, problem)
+        elif problem is not None:
+            raise InputError(problem)
+        dofs = self._bc_dofs
+        for target, arr, name in ((sysm.q, arrays[0], "q0"), (sysm.q_t, arrays[1], "v0")):
             target.x.array[:] = arr
             target.x.scatter_forward()
+            if self._bcs:
+                off = float(comm.allreduce(np.abs(target.x.array[dofs]).max(initial=0.0), op=MPI.MAX))
+                if off > 0:
+                    scale = float(comm.allreduce(np.abs(target.x.array).max(initial=0.0), op=MPI.MAX))
+                    n_bc = int(comm.allreduce(np.count_nonzero(
+                        self._bc_dofs_owned_mask & (target.x.array[dofs] != 0)), op=MPI.SUM))
+                    target.x.array[dofs] = 0.0
+                    if off > 1e-13 * scale:
+                        warnings.warn(
+                            f"{name} violates the Dirichlet conditions by up to {off:.3g} "
+                            f"(max |{name}| = {scale:.3g}) at {n_bc} dofs; it was set to the bc "
+                            "value 0 there before the run", InputCorrectedWarning, stacklevel=3)
         self.q.x.array[:] = sysm.q.x.array
         self._assemble(self._momentum_at, self.p)
         self._zero_bc_rows(self.p)
@@ -260,6 +337,9 @@ class MidpointIntegrator:
         rhs.axpy(1.0, self.p)
         fpetsc.set_bc(rhs, self._bcs)
         self._mass_ksp.solve(rhs, out.x.petsc_vec)
+        if self._mass_ksp.getConvergedReason() <= 0:
+            raise StepFailed(f"mass solve (velocity) failed at step {self.steps_taken}: KSP "
+                             f"reason {self._mass_ksp.getConvergedReason()}")
         out.x.scatter_forward()
         return out
 
@@ -297,16 +377,29 @@ class NewmarkIntegrator:
     def __init__(self, system: LagrangianSystem, dt: float, *, rayleigh=(0.0, 0.0),
                  input_forms=(), solver: str = "direct", near_nullspace=None,
                  prefix: str = "lopinf_newmark_", petsc_options: dict | None = None):
+        if not isinstance(system, LagrangianSystem):
+            raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
         if not system.is_quadratic:
-            raise ValueError("Newmark here is for linear systems (a quadratic Lagrangian)")
+            raise InputError("Newmark here is for linear systems (a quadratic Lagrangian)")
         if solver not in ("direct", "cg"):
-            raise ValueError(f"solver must be 'direct' or 'cg', got {solver!r}")
+            raise InputError(f"solver must be 'direct' or 'cg', got {solver!r}")
+        dt = _check_dt(dt)
+        try:
+            alpha, beta = (float(c) for c in rayleigh)
+        except (TypeError, ValueError):
+            raise InputError(f"rayleigh must be (alpha, beta), got {rayleigh!r}") from None
+        if not (np.isfinite(alpha) and np.isfinite(beta) and alpha >= 0 and beta >= 0):
+            raise InputError(f"rayleigh = {rayleigh!r}: alpha and beta must be finite and >= 0")
+        for j, form in enumerate(input_forms):
+            args = form.arguments() if isinstance(form, ufl.Form) else None
+            if not args or len(args) != 1 or args[0].ufl_function_space() != system.V:
+                raise InputError(f"input_forms[{j}] must be a UFL 1-form whose test function is "
+                                 "on the system's space (the space of q)")
         _check_homogeneous(system.bcs, system.V)
         self.system, self.dt = system, float(dt)
         V, comm = system.V, system.V.mesh.comm
         bcs = list(system.bcs)
         self._bcs = bcs
-        alpha, beta = rayleigh
         M = fpetsc.assemble_matrix(fem.form(system.mass_form), bcs=bcs)
         M.assemble()
         K = fpetsc.assemble_matrix(fem.form(system.stiffness_form), bcs=bcs, diag=0.0)
@@ -349,7 +442,9 @@ class NewmarkIntegrator:
         out.set(0.0)
         u = np.atleast_1d(np.asarray(u, dtype=float))
         if len(u) != len(self.inputs):
-            raise ValueError(f"expected {len(self.inputs)} input values, got {len(u)}")
+            raise InputError(f"expected {len(self.inputs)} input values, got {len(u)}")
+        if not np.all(np.isfinite(u)):
+            raise InputError(f"input values contain NaN or inf: {u}")
         for b, uj in zip(self.inputs, u):
             out.axpy(float(uj), b)
         return out
