@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._dolfinx import MPI, dolfinx
+from ._dolfinx import dolfinx
+from .errors import InputError
 from .fom import StateMap, gather_states
+from .lagrangian import _same_dofs
 from .snapshots import Snapshots
 
 
@@ -38,80 +40,127 @@ class SnapshotRecorder:
     def __init__(self, u, *, state_map: StateMap | None = None, output_matrix=None,
                  blocks: dict | None = None):
         V = u.function_space if isinstance(u, dolfinx.fem.Function) else u
-        if not hasattr(V, "dofmap"):
-            raise TypeError("SnapshotRecorder needs a dolfinx Function or FunctionSpace")
+        if not isinstance(V, dolfinx.fem.FunctionSpace):
+            raise InputError("SnapshotRecorder needs a dolfinx Function or FunctionSpace, got "
+                             f"{type(u).__name__}")
         self.V = V
         self.state_map = StateMap.from_coordinates(V) if state_map is None else state_map
         if blocks:
             self.state_map = StateMap(self.state_map.order, self.state_map.scale, blocks)
-        self.output_matrix = output_matrix
         self._n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self._n_local = (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) \
             * V.dofmap.index_map_bs
+        problem = None
+        if output_matrix is not None:
+            output_matrix = np.asarray(output_matrix)
+            if output_matrix.ndim != 2 or output_matrix.shape[1] != self._n_local:
+                problem = (f"output_matrix must be (p, {self._n_local}) on this rank (owned + ghost "
+                           f"dofs, from point_output_matrix), got shape {output_matrix.shape}")
+            elif not np.all(np.isfinite(output_matrix)):
+                problem = "output_matrix contains NaN or inf"
+        for m in (V.mesh.comm.allgather(problem) if V.mesh.comm.size > 1 else [problem]):
+            if m is not None:
+                raise InputError(m)
+        self.output_matrix = output_matrix
         self._times, self._states, self._velocities, self._inputs, self._outputs = [], [], [], [], []
 
     def __len__(self) -> int:
         return len(self._times)
 
     def _local(self, f, name):
+        """(array, problem): the local dof array of a Function/array, or why it is refused."""
         if isinstance(f, dolfinx.fem.Function):
-            if f.function_space.dofmap.index_map.size_global != self.V.dofmap.index_map.size_global:
-                raise ValueError(f"{name} lives on a different function space than the recorder's")
+            W = f.function_space
+            if W._cpp_object is not self.V._cpp_object and not _same_dofs(W._cpp_object, self.V):
+                where = "another mesh" if W.mesh._cpp_object is not self.V.mesh._cpp_object \
+                    else "another function space (element or dof layout)"
+                return None, (f"{name} is a Function on {where} than the recorder's; record "
+                              "Functions of the space the recorder was created with")
             arr = f.x.array
         else:
-            arr = np.asarray(f, dtype=float)
+            try:
+                arr = np.asarray(f, dtype=float)
+            except (TypeError, ValueError):
+                return None, f"{name} must be a Function or an array of floats, got {type(f).__name__}"
+            if arr.ndim != 1:
+                return None, f"{name} must be a 1-d local dof array, got shape {arr.shape}"
         if arr.shape[0] not in (self._n_owned, self._n_local):
-            raise ValueError(f"{name} has {arr.shape[0]} local entries; expected {self._n_owned} "
-                             f"(owned) or {self._n_local} (owned + ghosts)")
-        return arr
+            return None, (f"{name} has {arr.shape[0]} local entries; expected {self._n_owned} "
+                          f"(owned) or {self._n_local} (owned + ghosts)")
+        if not np.all(np.isfinite(arr[: self._n_owned])):
+            return None, f"the {name} recorded at this time contains NaN or inf"
+        return arr, None
 
     def record(self, t: float, u, *, velocity=None, inputs=None) -> None:
         """Store the state at time t (times must be increasing and uniformly spaced).
 
+        All or nothing: every argument is checked (collectively: every rank raises the same
+        :class:`~dolfinx_lopinf.errors.InputError`) before anything is stored, so a refused
+        call leaves the recorder as it was.
+
         Args:
             t: time of this state.
-            u: Function or local dof array (owned, or owned + ghosts).
+            u: Function on the recorder's space or local dof array (owned, or owned + ghosts).
             velocity: optional Function/array of the velocity at t.
             inputs: optional sequence of m input values at t (same m every call).
         """
-        t = float(t)
         comm = self.V.mesh.comm
-        arr = self._local(u, "u")
-        # collective check, so every rank raises together (no rank left waiting)
-        if comm.allreduce(not np.all(np.isfinite(arr[: self._n_owned])), op=MPI.LOR):
-            raise ValueError(f"the state recorded at t = {t} contains NaN or inf")
-        if self._times:
+        problem = None
+        try:
+            t = float(t)
+            if not np.isfinite(t):
+                problem = f"t must be finite, got {t}"
+        except (TypeError, ValueError):
+            problem = f"t must be a number, got {t!r}"
+        arr, p = self._local(u, "u")
+        problem = problem or p
+        vel = None
+        if velocity is not None:
+            vel, p = self._local(velocity, "velocity")
+            problem = problem or p
+        if problem is None and self._times:
             if t <= self._times[-1]:
-                raise ValueError(f"times must increase: got t = {t} after {self._times[-1]}")
-            if len(self._times) >= 2:
+                problem = f"times must increase: got t = {t} after {self._times[-1]}"
+            elif len(self._times) >= 2:
                 dt = self._times[1] - self._times[0]
                 if abs((t - self._times[-1]) - dt) > 1e-6 * dt:
-                    raise ValueError(f"record at a uniform spacing: dt was {dt}, now "
-                                     f"{t - self._times[-1]} at t = {t}")
-        if inputs is not None:
-            inputs = np.atleast_1d(np.asarray(inputs, dtype=float)).ravel()
-            if self._inputs and len(inputs) != len(self._inputs[0]):
-                raise ValueError(f"inputs had {len(self._inputs[0])} entries, now {len(inputs)}")
-        if (inputs is None) != (not self._inputs) and self._times:
-            raise ValueError("pass inputs at every record() call or at none")
-        if (velocity is None) != (not self._velocities) and self._times:
-            raise ValueError("pass velocity at every record() call or at none")
+                    problem = (f"record at a uniform spacing: dt was {dt}, now "
+                               f"{t - self._times[-1]} at t = {t}")
+        if inputs is not None and problem is None:
+            try:
+                inputs = np.atleast_1d(np.asarray(inputs, dtype=float)).ravel()
+                if not np.all(np.isfinite(inputs)):
+                    problem = f"inputs at t = {t} contain NaN or inf: {inputs}"
+                elif self._inputs and len(inputs) != len(self._inputs[0]):
+                    problem = f"inputs had {len(self._inputs[0])} entries, now {len(inputs)}"
+            except (TypeError, ValueError):
+                problem = f"inputs must be a sequence of numbers, got {inputs!r}"
+        if problem is None and self._times:
+            if (inputs is None) != (not self._inputs):
+                problem = "pass inputs at every record() call or at none"
+            elif (velocity is None) != (not self._velocities):
+                problem = "pass velocity at every record() call or at none"
+        if problem is None and self.output_matrix is not None and arr.shape[0] != self._n_local:
+            problem = "outputs need the ghosted array: pass the Function itself"
+        messages = comm.allgather(problem) if comm.size > 1 else [problem]
+        for m in messages:
+            if m is not None:
+                raise InputError(m)
+        y = comm.allreduce(self.output_matrix @ arr) if self.output_matrix is not None else None
+        # nothing can fail past this point: store everything
         self._times.append(t)
         self._states.append(arr[: self._n_owned].copy())
-        if velocity is not None:
-            self._velocities.append(self._local(velocity, "velocity")[: self._n_owned].copy())
+        if vel is not None:
+            self._velocities.append(vel[: self._n_owned].copy())
         if inputs is not None:
             self._inputs.append(inputs)
-        if self.output_matrix is not None:
-            full = arr if arr.shape[0] == self._n_local else None
-            if full is None:
-                raise ValueError("outputs need the ghosted array: pass the Function itself")
-            self._outputs.append(comm.allreduce(self.output_matrix @ full))
+        if y is not None:
+            self._outputs.append(y)
 
     def snapshots(self) -> Snapshots | None:
         """Gather everything to rank 0 as :class:`Snapshots` (None on the other ranks)."""
         if len(self._times) < 2:
-            raise ValueError("record at least two time steps before asking for snapshots")
+            raise InputError("record at least two time steps before asking for snapshots")
         Q = gather_states(self.V, np.column_stack(self._states), self.state_map)
         Vel = gather_states(self.V, np.column_stack(self._velocities), self.state_map) \
             if self._velocities else None
