@@ -51,6 +51,13 @@ class SolverWarning(LOpInfWarning, RuntimeWarning):
     certificate."""
 
 
+class NonLagrangianWarning(LOpInfWarning, RuntimeWarning):
+    """A reduced model's operators are not those of a Lagrangian system (K or C not
+    symmetric, K or M indefinite): its energy is not conserved or dissipated and its
+    trajectory may grow without bound. Legitimate for standard OpInf models; pass
+    ``lagrangian=False`` to :class:`dolfinx_lopinf.LagrangianROM` to say so."""
+
+
 class InputCorrectedWarning(LOpInfWarning):
     """An input was made consistent rather than refused (e.g. an initial state moved onto its
     Dirichlet conditions); the message says what changed and by how much."""
