@@ -18,7 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._checks import check_matrix
+from ._checks import (as_real_array, check_blocks, check_finite, check_int, check_matrix,
+                      check_square, fro_norm)
+from .errors import InputError
 
 
 @dataclass(frozen=True)
@@ -48,9 +50,11 @@ class Basis:
 
     def project(self, Q: np.ndarray) -> np.ndarray:
         """Reduced coordinates Qh = V^T W Q (W = I for Euclidean POD), (r, K) from (n, K)."""
-        Q = np.asarray(Q, dtype=float)
-        if Q.shape[0] != self.n:
-            raise ValueError(f"state has {Q.shape[0]} rows, the basis has n = {self.n}")
+        Q = as_real_array(Q, "Q")
+        if Q.ndim not in (1, 2) or Q.shape[0] != self.n:
+            raise InputError(f"Q must be (n,) or (n, K) with n = {self.n} (the basis' rows), got "
+                             f"shape {Q.shape}")
+        check_finite(Q, "Q")
         return self.V.T @ (Q if self.weight is None else self.weight @ Q)
 
     def reconstruct(self, Qh: np.ndarray, rows=None) -> np.ndarray:
@@ -61,20 +65,36 @@ class Basis:
             rows: optional row indices (e.g. the dofs of a point, a line or a surface);
                 only those rows are formed, at cost O(len(rows) r K).
         """
-        Qh = np.asarray(Qh, dtype=float)
-        if Qh.shape[0] != self.r:
-            raise ValueError(f"reduced state has {Qh.shape[0]} rows, the basis has r = {self.r}")
-        V = self.V if rows is None else self.V[np.asarray(rows)]
+        Qh = as_real_array(Qh, "Qh")
+        if Qh.ndim not in (1, 2) or Qh.shape[0] != self.r:
+            raise InputError(f"Qh must be (r,) or (r, K) with r = {self.r}, got shape {Qh.shape}")
+        # non-finite Qh (a ROM that blew up) reconstruct to non-finite states: a result
+        if rows is not None:
+            rows = np.asarray(rows)
+            if rows.dtype.kind not in "iu" or rows.ndim > 1:
+                raise InputError(f"rows must be integer row indices, got {rows.dtype} of shape "
+                                 f"{rows.shape}")
+            if rows.size and (rows.min() < -self.n or rows.max() >= self.n):
+                raise InputError(f"rows index outside 0..{self.n - 1}: min {rows.min()}, max "
+                                 f"{rows.max()}")
+        V = self.V if rows is None else self.V[rows]
         return V @ Qh
 
     def projection_error(self, Q: np.ndarray) -> float:
         """||Q - V project(Q)||_F / ||Q||_F: the floor no ROM in this basis can go below
-        (measured in the Euclidean norm of the state, whatever the basis' weight)."""
-        Q = np.asarray(Q, dtype=float)
-        return float(np.linalg.norm(Q - self.V @ self.project(Q)) / np.linalg.norm(Q))
+        (measured in the Euclidean norm of the state, whatever the basis' weight). The norms
+        are scaled first, so data of any finite magnitude (1e-170 .. 1e160) give the same
+        ratio."""
+        Qh = self.project(Q)
+        Q = as_real_array(Q, "Q")
+        denom = fro_norm(Q)
+        if denom == 0:
+            raise InputError("Q is identically zero; its relative projection error is undefined")
+        return fro_norm(Q - self.V @ Qh) / denom
 
     def truncate(self, r: int) -> "Basis":
         """The same kind of basis with fewer columns (r split evenly over the blocks)."""
+        r = check_int(r, "r", 1)
         sizes = _split(r, list(self.blocks))
         cols, new_blocks, start = [], {}, 0
         for (name, (rows, bcols)), size in zip(self.blocks.items(), sizes):
@@ -118,12 +138,16 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
         ((50, 4), True)
     """
     Q = check_matrix(Q, "Q")
-    if r < 1:
-        raise ValueError(f"r must be >= 1, got {r}")
+    if isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or r < 1:
+        raise InputError(f"r must be a positive integer, got {r!r}")
+    r = int(r)
+    if not (isinstance(rank_rtol, (int, float, np.integer, np.floating)) and 0 <= rank_rtol < 1):
+        raise InputError(f"rank_rtol must be a number in [0, 1), got {rank_rtol!r}")
     if weight is not None:
         if blocks:
-            raise ValueError("a weighted POD mixes blocks; pass either blocks or weight")
-        return _weighted_pod(Q, r, np.asarray(weight, dtype=float), rank_rtol)
+            raise InputError("a weighted POD mixes blocks; pass either blocks or weight")
+        return _weighted_pod(Q, r, check_square(weight, "weight"), rank_rtol)
+    blocks = check_blocks(blocks, Q.shape[0])
     blocks = {"all": np.arange(Q.shape[0])} if not blocks else blocks
     sizes = _split(r, list(blocks))
     V = np.zeros((Q.shape[0], r))
@@ -150,11 +174,13 @@ def _weighted_pod(Q, r, W, rank_rtol):
 
     n = Q.shape[0]
     if W.shape != (n, n):
-        raise ValueError(f"weight must be ({n}, {n}), got {W.shape}")
+        raise InputError(f"weight must be ({n}, {n}), got {W.shape}")
     try:
         R = scipy.linalg.cholesky(0.5 * (W + W.T), lower=False)
     except np.linalg.LinAlgError as exc:
-        raise ValueError("the weight matrix is not symmetric positive definite") from exc
+        raise InputError("weight is not symmetric positive definite (its Cholesky "
+                         "factorisation failed); pass an SPD inner-product matrix such as the "
+                         "mass matrix") from exc
     U, s, _ = np.linalg.svd(R @ Q, full_matrices=False)
     rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
     if r > rank:

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._checks import check_finite, check_matrix, check_uniform_times
+from ._checks import as_real_array, check_blocks, check_finite, check_matrix, check_uniform_times
+from .errors import FileFormatError, InputError
+from .io_atomic import atomic_savez_compressed, open_npz
 
 
 @dataclass(frozen=True)
@@ -42,32 +44,51 @@ class Snapshots:
     output_times: np.ndarray | None = None
 
     def __post_init__(self):
-        times = np.asarray(self.times, dtype=float)
-        check_uniform_times(times)
+        dt = check_uniform_times(self.times)
+        times = as_real_array(self.times, "times")
         object.__setattr__(self, "times", times)
-        object.__setattr__(self, "Q", check_matrix(self.Q, "Q", cols=len(times)))
+        object.__setattr__(self, "_dt", dt)
+        K = len(times)
+        object.__setattr__(self, "Q", check_matrix(self.Q, "Q", cols=K))
         n = self.Q.shape[0]
         for name in ("V", "U", "energy"):
             value = getattr(self, name)
             if value is None:
                 continue
-            value = np.asarray(value, dtype=float)
-            if value.shape[-1] != len(times) or (name == "V" and value.shape != self.Q.shape):
-                raise ValueError(f"{name} has shape {value.shape}, incompatible with Q {self.Q.shape}")
+            value = as_real_array(value, name)
+            ok = {"V": value.shape == self.Q.shape, "U": value.ndim in (1, 2),
+                  "energy": value.ndim == 1}[name] and value.shape[-1] == K
+            if not ok:
+                want = {"V": f"{self.Q.shape} like Q", "U": f"(m, {K})", "energy": f"({K},)"}[name]
+                raise InputError(f"{name} has shape {value.shape}; it must be {want} (one "
+                                 f"column per sample time)")
             check_finite(value, name)
             object.__setattr__(self, name, value)
+        ty = None
+        if self.output_times is not None:
+            if self.Y is None:
+                raise InputError("output_times given without Y; pass the outputs Y too (or drop "
+                                 "output_times)")
+            ty = as_real_array(self.output_times, "output_times")
+            if ty.ndim != 1 or len(ty) < 1:
+                raise InputError(f"output_times must be a non-empty 1-D array, got shape {ty.shape}")
+            check_finite(ty, "output_times")
+            if len(ty) > 1 and np.min(np.diff(ty)) <= 0:
+                k = int(np.argmin(np.diff(ty)))
+                raise InputError(f"output_times must be strictly increasing; output_times[{k}] = "
+                                 f"{ty[k]!r} is followed by {ty[k + 1]!r}")
+            object.__setattr__(self, "output_times", ty)
         if self.Y is not None:
-            ty = times if self.output_times is None else np.asarray(self.output_times, float)
-            object.__setattr__(self, "Y", check_matrix(np.atleast_2d(self.Y), "Y", cols=len(ty)))
-        blocks = {str(k): np.asarray(v, dtype=np.int64) for k, v in self.blocks.items()}
-        for name, rows in blocks.items():
-            if rows.size and (rows.min() < 0 or rows.max() >= n):
-                raise ValueError(f"block {name!r} indexes rows outside 0..{n - 1}")
-        object.__setattr__(self, "blocks", blocks)
+            Y = as_real_array(self.Y, "Y")
+            Y = Y.reshape(1, -1) if Y.ndim == 1 else Y
+            object.__setattr__(self, "Y", check_matrix(Y, "Y", cols=K if ty is None else len(ty)))
+        object.__setattr__(self, "blocks", check_blocks(self.blocks, n))
 
     @property
     def dt(self) -> float:
-        return float(self.times[1] - self.times[0])
+        """The sample spacing (mean of the differences, exact to rounding even when the times
+        carry a large offset)."""
+        return self._dt
 
     @property
     def n_states(self) -> int:
@@ -75,7 +96,14 @@ class Snapshots:
 
     def window(self, t_start: float, t_stop: float) -> "Snapshots":
         """The samples with ``t_start <= t <= t_stop`` (outputs on their own grid are cut too)."""
-        tol = 1e-9 * self.dt
+        for name, value in (("t_start", t_start), ("t_stop", t_stop)):
+            try:
+                bad = isinstance(value, (str, bytes, complex)) or np.isnan(float(value))
+            except (TypeError, ValueError):
+                bad = True
+            if bad:
+                raise InputError(f"{name} must be a real number (inf allowed), got {value!r}")
+        tol = 1e-9 * self.dt + 2 * np.finfo(float).eps * np.max(np.abs(self.times))
         keep = (self.times >= t_start - tol) & (self.times <= t_stop + tol)
         if keep.sum() < 2:
             raise ValueError(f"window [{t_start}, {t_stop}] holds fewer than 2 samples")
@@ -93,16 +121,36 @@ class Snapshots:
                        U=cut(self.U), energy=cut(self.energy), Y=Y, output_times=ty)
 
     def save(self, path: str | Path) -> Path:
-        """Write all arrays to one compressed ``.npz``."""
-        path = Path(path)
-        arrays = {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
+        """Write all arrays to one compressed ``.npz``, atomically (a temporary file in the
+        same directory replaces ``path`` once complete; an interrupted save leaves the
+        previous file intact). Returns the path written: ``.npz`` is appended unless
+        ``path`` already ends in it."""
+        arrays = {k: v for k, v in self.__dict__.items()
+                  if isinstance(v, np.ndarray) and not k.startswith("_")}
         arrays.update({f"block__{k}": v for k, v in self.blocks.items()})
-        np.savez_compressed(path, **arrays)
-        return path
+        return atomic_savez_compressed(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> "Snapshots":
-        with np.load(path) as data:
-            kw = {k: data[k] for k in data.files if not k.startswith("block__")}
-            kw["blocks"] = {k[7:]: data[k] for k in data.files if k.startswith("block__")}
-        return cls(**kw)
+        """Read a file written by :meth:`save`. Raises
+        :class:`~dolfinx_lopinf.errors.FileFormatError` naming the file when it is not such
+        a file (another format, truncated, missing or unknown entries), and
+        ``FileNotFoundError`` when it does not exist."""
+        fields = {"times", "Q", "V", "U", "Y", "energy", "output_times"}
+        with open_npz(path, "snapshots (Snapshots.save)") as (data, read):
+            names = [k for k in data.files if not k.startswith("block__")]
+            missing = [k for k in ("times", "Q") if k not in names]
+            if missing:
+                raise FileFormatError(f"{path}: lacks {', '.join(map(repr, missing))} "
+                                      f"(entries found: {sorted(data.files)}); not a file "
+                                      "written by Snapshots.save")
+            unknown = sorted(set(names) - fields)
+            if unknown:
+                raise FileFormatError(f"{path}: unknown entries {unknown}; not a file written "
+                                      "by Snapshots.save (a ROM? use load_rom)")
+            kw = {k: read(k) for k in names}
+            kw["blocks"] = {k[7:]: read(k) for k in data.files if k.startswith("block__")}
+        try:
+            return cls(**kw)
+        except InputError as exc:
+            raise FileFormatError(f"{path}: the stored snapshots are invalid: {exc}") from exc
