@@ -25,18 +25,61 @@ with a_k = Mh^{-1} (Bh u_k - Ch v_k - Kh q_k):
 
 Save/load to one ``.npz`` (operators, scheme, metadata, optionally basis rows); loading and
 simulating needs numpy only.
+
+Every operator is checked once at construction (real, finite, shapes; M invertible), and a
+model whose K, M or C are not those of a Lagrangian system (K, C not symmetric; K, M, C
+indefinite) is named in a :class:`~dolfinx_lopinf.errors.NonLagrangianWarning` unless
+``lagrangian=False`` says that is intended (standard OpInf), or refused with
+``lagrangian=True``. The forcing of a forced model is formed chunk by chunk while
+integrating, so memory does not grow with the number of steps.
 """
 
 from __future__ import annotations
 
 import json
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ._checks import check_finite
+from ._checks import (as_real_array, check_finite, check_int, check_matrix, check_positive,
+                      check_square, check_vector)
+from .errors import FileFormatError, InputError, NonLagrangianWarning
+from .io_atomic import atomic_savez, open_npz
+
+#: Steps whose forcing is formed at once (memory 2 r x _CHUNK floats, whatever n_steps is).
+_CHUNK = 1024
+#: Relative tolerance of the symmetry / definiteness checks of the operators.
+_STRUCTURE_RTOL = 1e-8
+
+
+def _initial_state(q0, v0, r):
+    q0, v0 = (as_real_array(a, name).reshape(-1) for a, name in ((q0, "q0"), (v0, "v0")))
+    if q0.shape != (r,) or v0.shape != (r,):
+        raise InputError(f"q0 and v0 must have shape ({r},), got {q0.shape} and {v0.shape}")
+    check_finite(q0, "q0")
+    check_finite(v0, "v0")
+    return q0, v0
+
+
+def _structure_problems(name, A):
+    """Why the square matrix A is not symmetric positive semidefinite, or [] (an exactly
+    singular M is refused separately)."""
+    out = []
+    top = float(np.max(np.abs(A)))
+    if top == 0:
+        return out
+    asym = float(np.max(np.abs(A - A.T)))
+    if asym > _STRUCTURE_RTOL * top:
+        out.append(f"{name} is not symmetric: max|{name} - {name}^T| = {asym:.3g} "
+                   f"({asym / top:.2g} of max|{name}|)")
+    eig = np.linalg.eigvalsh(0.5 * (A + A.T))
+    if eig[0] < -_STRUCTURE_RTOL * max(abs(eig[0]), abs(eig[-1])):
+        out.append(f"{name} is indefinite: the smallest eigenvalue of its symmetric part is "
+                   f"{eig[0]:.6g} (largest {eig[-1]:.6g})")
+    return out
 
 
 @dataclass(frozen=True)
@@ -69,33 +112,54 @@ class LagrangianROM:
     E: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
     scheme: str = "midpoint"
+    lagrangian: bool | None = None
 
     def __post_init__(self):
         if self.scheme not in ("midpoint", "newmark"):
-            raise ValueError(f"scheme must be 'midpoint' or 'newmark', got {self.scheme!r}")
-        K = np.asarray(self.K, dtype=float)
-        if K.ndim != 2 or K.shape[0] != K.shape[1]:
-            raise ValueError(f"K must be square, got shape {K.shape}")
-        check_finite(K, "K")
+            raise InputError(f"scheme must be 'midpoint' or 'newmark', got {self.scheme!r}")
+        if self.lagrangian not in (None, True, False):
+            raise InputError(f"lagrangian must be None, True or False, got {self.lagrangian!r}")
+        K = check_square(self.K, "K")
         object.__setattr__(self, "K", K)
         r = K.shape[0]
-        for name, shape in (("M", (r, r)), ("C", (r, r))):
-            value = getattr(self, name)
-            if value is not None:
-                value = np.asarray(value, dtype=float)
-                if value.shape != shape:
-                    raise ValueError(f"{name} must have shape {shape}, got {value.shape}")
-                object.__setattr__(self, name, value)
+        for name in ("M", "C"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, check_square(getattr(self, name), name, r))
+        if self.M is not None:
+            s = np.linalg.svd(self.M, compute_uv=False)
+            if s[-1] <= r * np.finfo(float).eps * s[0] or s[0] == 0:
+                raise InputError(f"M is singular (singular values {s[0]:.3g} .. {s[-1]:.3g}); "
+                                 "the mass matrix must be invertible")
         if self.B is not None:
-            B = np.asarray(self.B, dtype=float)
-            if B.ndim > 2 or B.shape[0] != r:
-                raise ValueError(f"B must have {r} rows (r, m), got shape {B.shape}")
-            object.__setattr__(self, "B", B.reshape(r, -1))
+            B = as_real_array(self.B, "B")
+            if B.ndim == 1 and B.shape == (r,):
+                B = B.reshape(r, 1)
+            if B.ndim != 2 or B.shape[0] != r or B.shape[1] == 0:
+                raise InputError(f"B must have shape ({r}, m) with m >= 1, got {B.shape} "
+                                 "(pass B=None for an unforced model)")
+            check_finite(B, "B")
+            object.__setattr__(self, "B", B)
         if self.E is not None:
-            E = np.atleast_2d(np.asarray(self.E, dtype=float))
-            if E.shape[1] != r:
-                raise ValueError(f"E must have {r} columns (p, r), got shape {E.shape}")
+            E = as_real_array(self.E, "E")
+            E = E.reshape(1, -1) if E.ndim == 1 else E
+            if E.ndim != 2 or E.shape[1] != r or E.shape[0] == 0:
+                raise InputError(f"E must have shape (p, {r}), got {E.shape}")
+            check_finite(E, "E")
             object.__setattr__(self, "E", E)
+        if self.lagrangian is not False:
+            problems = _structure_problems("K", K)
+            for name in ("M", "C"):
+                if getattr(self, name) is not None:
+                    problems += _structure_problems(name, getattr(self, name))
+            if problems:
+                msg = ("; ".join(problems) + ". This model is not the Euler-Lagrange equation of "
+                       "a Lagrangian: its energy is neither conserved nor dissipated and its "
+                       "trajectory may grow without bound (infer_mechanical fits a structured "
+                       "model). Pass lagrangian=False if that is intended (e.g. standard "
+                       "OpInf), lagrangian=True to make this an error.")
+                if self.lagrangian:
+                    raise InputError(msg)
+                warnings.warn(msg, NonLagrangianWarning, stacklevel=3)
 
     @property
     def r(self) -> int:
@@ -108,10 +172,16 @@ class LagrangianROM:
     def energy(self, Qh: np.ndarray, Vh: np.ndarray) -> np.ndarray:
         """ROM energy 1/2 v^T Mh v + 1/2 q^T Kh q for (r, K) arrays (per column)."""
         M, K = self.mass, self.K
+        Qh, Vh = as_real_array(Qh, "Qh"), as_real_array(Vh, "Vh")
+        if Qh.ndim != 2 or Qh.shape[0] != self.r or Vh.shape != Qh.shape:
+            raise InputError(f"Qh and Vh must both be ({self.r}, K) arrays, got {Qh.shape} and "
+                             f"{Vh.shape}")
+        # non-finite columns (a trajectory that blew up) give non-finite energies: a result
         return 0.5 * np.einsum("ik,ij,jk->k", Vh, M, Vh) + 0.5 * np.einsum("ik,ij,jk->k", Qh, K, Qh)
 
     def propagator(self, dt: float) -> tuple[np.ndarray, np.ndarray | None]:
         """(G, H): one midpoint step is [q1; p1] = G [q0; p0] + H u_mid."""
+        dt = check_positive(dt, "dt")
         M, K = self.mass, self.K
         C = np.zeros_like(K) if self.C is None else self.C
         A = M + 0.5 * dt * C + 0.25 * dt**2 * K
@@ -128,6 +198,7 @@ class LagrangianROM:
 
     def newmark_propagator(self, dt: float):
         """(G, H0, H1): one Newmark step is [q1; v1] = G [q0; v0] + H0 u0 + H1 u1."""
+        dt = check_positive(dt, "dt")
         r, M, K = self.r, self.mass, self.K
         C = np.zeros_like(K) if self.C is None else self.C
         m = 0 if self.B is None else self.B.shape[1]
@@ -158,95 +229,199 @@ class LagrangianROM:
             :class:`Trajectory` sampled at t = 0, every*dt, ... (velocities v = Mh^{-1} p).
         """
         r = self.r
-        q0, v0 = (np.asarray(a, dtype=float).reshape(-1) for a in (q0, v0))
-        if q0.shape != (r,) or v0.shape != (r,):
-            raise ValueError(f"q0 and v0 must have shape ({r},), got {q0.shape} and {v0.shape}")
-        if n_steps < 0 or every < 1:
-            raise ValueError("n_steps must be >= 0 and every >= 1")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be positive and finite, got {dt}")
-        U = self._input_array(inputs, dt, n_steps)
+        q0, v0 = _initial_state(q0, v0, r)
+        n_steps = check_int(n_steps, "n_steps", 0)
+        every = check_int(every, "every", 1)
+        dt = check_positive(dt, "dt")
+        chunks = self._input_chunks(inputs, dt, n_steps)
         t0 = time.perf_counter()
+        input_seconds = 0.0  # evaluating a callable input is not integration time
         n_out = n_steps // every + 1
         X = np.empty((2 * r, n_out))
         if self.scheme == "midpoint":
             G, H = self.propagator(dt)
             x = np.concatenate([q0, self.mass @ v0])
-            forcing = None if H is None else H @ U  # (2r, n_steps), one product up front
         else:
             G, H0, H1 = self.newmark_propagator(dt)
             x = np.concatenate([q0, v0])
-            forcing = None if U is None else H0 @ U[:, :-1] + H1 @ U[:, 1:]
         X[:, 0] = x
         j = 1
-        for k in range(n_steps):
-            x = G @ x
-            if forcing is not None:
-                x += forcing[:, k]
-            if (k + 1) % every == 0:
-                X[:, j] = x
-                j += 1
+        if chunks is None:
+            for k in range(n_steps):
+                x = G @ x
+                if (k + 1) % every == 0:
+                    X[:, j] = x
+                    j += 1
+        else:
+            for k0 in range(0, n_steps, _CHUNK):
+                k1 = min(k0 + _CHUNK, n_steps)
+                ti = time.perf_counter()
+                U = chunks(k0, k1)
+                input_seconds += time.perf_counter() - ti
+                # the forcing of these steps only (2r x _CHUNK), same products as for all at once
+                forcing = H @ U if self.scheme == "midpoint" else H0 @ U[:, :-1] + H1 @ U[:, 1:]
+                for i in range(k1 - k0):
+                    x = G @ x
+                    x += forcing[:, i]
+                    if (k0 + i + 1) % every == 0:
+                        X[:, j] = x
+                        j += 1
         Qh = X[:r]
         Vh = np.linalg.solve(self.mass, X[r:]) if self.scheme == "midpoint" else X[r:]
-        seconds = time.perf_counter() - t0
+        seconds = time.perf_counter() - t0 - input_seconds
         Y = None if self.E is None else self.E @ Qh
         times = dt * every * np.arange(n_out)
         return Trajectory(times, Qh, Vh, Y, seconds)
 
-    def _input_array(self, inputs, dt, n_steps):
+    def _input_chunks(self, inputs, dt, n_steps):
+        """None for an unforced model, else chunk(k0, k1) -> the inputs of steps k0 .. k1-1:
+        (m, k1-k0) at the step midpoints (midpoint) or (m, k1-k0+1) at t_k0 .. t_k1 (Newmark).
+        An array is checked once here; a callable's values are checked chunk by chunk."""
         if self.B is None:
             if inputs is not None:
-                raise ValueError("this ROM has no input operator B; do not pass inputs")
+                raise InputError("this ROM has no input operator B; do not pass inputs")
             return None
         m = self.B.shape[1]
         if inputs is None:
-            raise ValueError(f"this ROM is forced (B has {m} columns): pass inputs")
-        n_u = n_steps if self.scheme == "midpoint" else n_steps + 1
-        if callable(inputs):
-            times = dt * (np.arange(n_steps) + 0.5) if self.scheme == "midpoint" else dt * np.arange(n_u)
-            U = np.column_stack([np.atleast_1d(np.asarray(inputs(t), dtype=float)) for t in times]) \
-                if n_u else np.zeros((m, 0))
-        else:
-            U = np.atleast_2d(np.asarray(inputs, dtype=float))
-        if U.shape != (m, n_u):
-            where = "step midpoints" if self.scheme == "midpoint" else "steps t_0 .. t_n"
-            raise ValueError(f"inputs must have shape ({m}, {n_u}) (m inputs at the {where}), "
-                             f"got {U.shape}")
-        check_finite(U, "inputs")
-        return U
+            raise InputError(f"this ROM is forced (B has {m} columns): pass inputs")
+        midpoint = self.scheme == "midpoint"
+        n_u = n_steps if midpoint else n_steps + 1
+        where = "step midpoints" if midpoint else "steps t_0 .. t_n"
+        if not callable(inputs):
+            U = as_real_array(inputs, "inputs")
+            U = U.reshape(1, -1) if U.ndim == 1 else U
+            if U.shape != (m, n_u):
+                raise InputError(f"inputs must have shape ({m}, {n_u}) (m inputs at the {where}), "
+                                 f"got {U.shape}")
+            check_finite(U, "inputs")
+            return lambda k0, k1: U[:, k0:k1 + (not midpoint)]
+
+        last = {}
+
+        def chunk(k0, k1):
+            steps = np.arange(k0, k1) if midpoint else np.arange(k0, k1 + 1)
+            times = dt * (steps + 0.5) if midpoint else dt * steps
+            cols = [np.atleast_1d(np.asarray(inputs(t))) for t in times[1 if k0 in last else 0:]]
+            if k0 in last:  # Newmark: u(t_k0) was the last column of the previous chunk
+                cols.insert(0, last.pop(k0))
+            try:
+                U = np.column_stack(cols)
+            except ValueError:
+                sizes = sorted({c.shape for c in cols})
+                raise InputError(f"inputs(t) returned arrays of different shapes {sizes}; it "
+                                 f"must return ({m},) at every t") from None
+            U = as_real_array(U, "inputs(t)")
+            if U.shape != (m, len(times)):
+                raise InputError(f"inputs(t) must return {m} value(s) (one per column of B), "
+                                 f"got shape {cols[0].shape} at t = {times[0]:.6g}")
+            finite = np.isfinite(U)
+            if not finite.all():
+                i, k = np.argwhere(~finite)[0]
+                raise InputError(f"inputs(t) returned a non-finite value {U[i, k]} (input {i}) "
+                                 f"at t = {times[k]:.6g}; the forcing must be finite")
+            if not midpoint:
+                last[k1] = U[:, -1]
+            return U
+
+        return chunk
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
              rows: np.ndarray | None = None) -> Path:
     """Write a ROM to one ``.npz``: operators, scheme, metadata (JSON) and optionally rows of
-    its basis (e.g. the dofs of an output point, for partial reconstruction).
+    its basis (e.g. the dofs of an output point, for partial reconstruction). The write is
+    atomic: an interrupted save leaves any previous file at ``path`` intact.
 
     Args:
         basis_rows: (len(rows), r) rows of the basis V to ship with the ROM.
         rows: their indices in the full state.
+
+    Returns:
+        The path written (``.npz`` appended unless ``path`` ends in it).
     """
-    path = Path(path)
-    arrays = {"K": rom.K, "scheme": np.array(rom.scheme), "meta": np.array(json.dumps(rom.meta))}
+    if not isinstance(rom, LagrangianROM):
+        raise InputError(f"rom must be a LagrangianROM, got {type(rom).__name__}")
+    try:
+        meta = json.dumps(rom.meta, default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"rom.meta must be JSON-serialisable (numbers, strings, lists, dicts, "
+                         f"numpy scalars/arrays): {exc}") from None
+    arrays = {"K": rom.K, "scheme": np.array(rom.scheme), "meta": np.array(meta),
+              "lagrangian": np.array(json.dumps(rom.lagrangian))}
     for name in ("M", "C", "B", "E"):
         if getattr(rom, name) is not None:
             arrays[name] = getattr(rom, name)
     if basis_rows is not None:
-        basis_rows = np.asarray(basis_rows, dtype=float)
-        if basis_rows.ndim != 2 or basis_rows.shape[1] != rom.r:
-            raise ValueError(f"basis_rows must be (k, {rom.r}), got {basis_rows.shape}")
+        basis_rows = check_matrix(basis_rows, "basis_rows")
+        if basis_rows.shape[1] != rom.r:
+            raise InputError(f"basis_rows must be (k, {rom.r}), got {basis_rows.shape}")
+        if rows is None:
+            rows = np.arange(len(basis_rows))
+        rows = np.asarray(rows)
+        if rows.dtype.kind not in "iu" or rows.shape != (len(basis_rows),):
+            raise InputError(f"rows must be {len(basis_rows)} integer indices (one per row of "
+                             f"basis_rows), got {rows.dtype} of shape {rows.shape}")
         arrays["basis_rows"] = basis_rows
-        arrays["rows"] = np.arange(len(basis_rows)) if rows is None else np.asarray(rows)
-    np.savez(path, **arrays)
-    return path if path.suffix == ".npz" else path.with_suffix(path.suffix + ".npz")
+        arrays["rows"] = rows
+    elif rows is not None:
+        raise InputError("rows given without basis_rows; pass both or neither")
+    return atomic_savez(path, **arrays)
 
 
 def load_rom(path) -> tuple[LagrangianROM, dict]:
     """Read a ROM written by :func:`save_rom`; returns ``(rom, extras)`` where extras may hold
-    ``basis_rows`` and ``rows``."""
-    with np.load(path, allow_pickle=False) as data:
-        kw = {name: data[name] for name in ("K", "M", "C", "B", "E") if name in data.files}
-        rom = LagrangianROM(**kw, scheme=str(data["scheme"]), meta=json.loads(str(data["meta"])))
-        extras = {k: data[k] for k in ("basis_rows", "rows") if k in data.files}
+    ``basis_rows`` and ``rows``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        FileFormatError: naming the file, when it is not a ROM file (text, a single ``.npy``,
+            truncated or corrupt, no ``K`` or ``scheme``, unreadable metadata) or its operators
+            are invalid (non-finite, wrong shapes).
+    """
+    what = "ROM (save_rom)"
+    with open_npz(path, what) as (data, read):
+        missing = [k for k in ("K", "scheme") if k not in data.files]
+        if missing:
+            hint = " (a Snapshots file? use Snapshots.load)" if "Q" in data.files else ""
+            raise FileFormatError(f"{path}: lacks {', '.join(map(repr, missing))} (entries found: "
+                                  f"{sorted(data.files)}); not a file written by save_rom{hint}")
+        kw = {name: read(name) for name in ("K", "M", "C", "B", "E") if name in data.files}
+        scheme = read("scheme")
+        texts = {"meta": "{}", "lagrangian": "null"}
+        for key in texts:
+            if key in data.files:
+                value = read(key)
+                if value.dtype.kind != "U" or value.ndim != 0:
+                    raise FileFormatError(f"{path}: entry {key!r} must be a JSON string, got "
+                                          f"{value.dtype} of shape {value.shape}")
+                texts[key] = str(value)
+        extras = {k: read(k) for k in ("basis_rows", "rows") if k in data.files}
+    if scheme.ndim != 0 or scheme.dtype.kind != "U":
+        raise FileFormatError(f"{path}: entry 'scheme' must be a string, got {scheme.dtype} of "
+                              f"shape {scheme.shape}")
+    parsed = {}
+    for key, text in texts.items():
+        try:
+            parsed[key] = json.loads(text)
+        except ValueError as exc:
+            raise FileFormatError(f"{path}: entry {key!r} is not valid JSON ({exc}): "
+                                  f"{text[:60]!r}") from None
+    if parsed["lagrangian"] not in (None, True, False):
+        raise FileFormatError(f"{path}: entry 'lagrangian' must be null, true or false, got "
+                              f"{texts['lagrangian']!r}")
+    try:
+        rom = LagrangianROM(**kw, scheme=str(scheme), meta=parsed["meta"],
+                            lagrangian=parsed["lagrangian"])
+    except InputError as exc:
+        raise FileFormatError(f"{path}: the stored ROM is invalid: {exc}") from exc
     return rom, extras
 
 
@@ -274,6 +449,20 @@ class WaveROM:
     U: object
     weights: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        K = check_square(self.K, "K")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "V", check_matrix(self.V, "V", cols=K.shape[0]))
+        if self.weights is not None:
+            w = check_vector(self.weights, "weights", self.V.shape[0])
+            if np.any(w < 0):
+                raise InputError(f"weights must be >= 0 (ECSW weights), got min {w.min():.3g}")
+            object.__setattr__(self, "weights", w)
+        for name in ("g", "dg", "U"):
+            if not callable(getattr(self, name)):
+                raise InputError(f"{name} must be a callable (a numpy function of the pointwise "
+                                 f"nonlinearity), got {type(getattr(self, name)).__name__}")
 
     @property
     def r(self) -> int:
@@ -304,10 +493,10 @@ class WaveROM:
         Raises ``RuntimeError`` naming the step if Newton does not converge.
         """
         r, K, V, w = self.r, self.K, self.V, self._w()
-        q = np.asarray(q0, dtype=float).copy()
-        p = np.asarray(v0, dtype=float).copy()
-        if q.shape != (r,) or p.shape != (r,):
-            raise ValueError(f"q0 and v0 must have shape ({r},)")
+        q, p = (a.copy() for a in _initial_state(q0, v0, r))
+        dt = check_positive(dt, "dt")
+        n_steps = check_int(n_steps, "n_steps", 0)
+        every = check_int(every, "every", 1)
         t0 = time.perf_counter()
         n_out = n_steps // every + 1
         Q, P = np.empty((r, n_out)), np.empty((r, n_out))
