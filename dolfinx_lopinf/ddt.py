@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._checks import check_finite, check_uniform_times
+from ._checks import as_real_array, check_finite, check_positive, check_uniform_times
+from .errors import InputError
 
 #: Half-width of the central stencils.
 HALF_WIDTH = 4
@@ -25,20 +26,31 @@ _D2_CENTER = -205 / 72
 _D2 = np.array([8 / 5, -1 / 5, 8 / 315, -1 / 560])  # symmetric weights for offsets 1..4
 
 
-def _check(states: np.ndarray, dt: float) -> np.ndarray:
-    states = np.asarray(states, dtype=float)
+def _check(states: np.ndarray, dt: float, n_min: int = 2 * HALF_WIDTH + 1) -> np.ndarray:
+    states = as_real_array(states, "states")
     if states.ndim not in (1, 2):
-        raise ValueError(f"states must be (r, K) or (K,), got shape {states.shape}")
+        raise InputError(f"states must be (r, K) or (K,), got shape {states.shape}")
     n_times = states.shape[-1]
-    if n_times < 2 * HALF_WIDTH + 1:
-        raise ValueError(
-            f"the 8th-order central difference needs at least {2 * HALF_WIDTH + 1} time "
-            f"samples, got {n_times}; record a longer window or more often"
+    if n_times < n_min:
+        what = ("the 8th-order central difference needs" if n_min == 2 * HALF_WIDTH + 1
+                else "the discrete Euler-Lagrange data need")
+        raise InputError(
+            f"{what} at least {n_min} time samples, got {n_times}; record a longer window or "
+            "more often"
         )
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive finite number, got {dt!r}")
+    check_positive(dt, "dt")
     check_finite(states, "states")
     return states
+
+
+def _check_grid(states, times, n_min: int = 2 * HALF_WIDTH + 1):
+    """(states, dt) for states sampled at uniform ``times``, checked once."""
+    dt = check_uniform_times(times)
+    q = _check(states, dt, n_min)
+    if q.shape[-1] != len(times):
+        raise InputError(f"states have {q.shape[-1]} columns but times has {len(times)} entries; "
+                         "pass one time per column")
+    return q, dt
 
 
 def first_derivative(states: np.ndarray, dt: float) -> np.ndarray:
@@ -86,10 +98,7 @@ def derivatives(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.n
         >>> bool(np.allclose(ddQh, -Qh, atol=1e-9))
         True
     """
-    dt = check_uniform_times(times)
-    q = _check(states, dt)
-    if q.shape[-1] != len(times):
-        raise ValueError(f"states have {q.shape[-1]} columns but times has {len(times)} entries")
+    q, dt = _check_grid(states, times)
     h = HALF_WIDTH
     return q[..., h:-h], first_derivative(q, dt), second_derivative(q, dt)
 
@@ -115,13 +124,7 @@ def variational_data(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray,
     Returns:
         ``(Qbar, D2)``, each (r, K-2), for k = 1 .. K-2.
     """
-    dt = check_uniform_times(times)
-    q = np.asarray(states, dtype=float)
-    if q.shape[-1] != len(times):
-        raise ValueError(f"states have {q.shape[-1]} columns but times has {len(times)} entries")
-    if q.shape[-1] < 3:
-        raise ValueError("the discrete Euler-Lagrange data need at least 3 time samples")
-    check_finite(q, "states")
+    q, dt = _check_grid(states, times, 3)
     return (q[..., 2:] + 2 * q[..., 1:-1] + q[..., :-2]) / 4, (q[..., 2:] - 2 * q[..., 1:-1] + q[..., :-2]) / dt**2
 
 
@@ -149,15 +152,17 @@ def newmark_data(states: np.ndarray, times: np.ndarray, inputs: np.ndarray | Non
         ``(Qbar, D1, D2, Ubar)``, each with K - 2 columns (k = 1 .. K-2); Ubar is None
         without inputs.
     """
-    Qbar, D2 = variational_data(states, times)
-    dt = times[1] - times[0]
-    q = np.asarray(states, dtype=float)
+    q, dt = _check_grid(states, times, 3)
+    Qbar = (q[..., 2:] + 2 * q[..., 1:-1] + q[..., :-2]) / 4
+    D2 = (q[..., 2:] - 2 * q[..., 1:-1] + q[..., :-2]) / dt**2
     D1 = (q[..., 2:] - q[..., :-2]) / (2 * dt)
     Ubar = None
     if inputs is not None:
-        u = np.atleast_2d(np.asarray(inputs, dtype=float))
-        if u.shape[-1] != q.shape[-1]:
-            raise ValueError(f"inputs have {u.shape[-1]} columns but states have {q.shape[-1]}")
+        u = as_real_array(inputs, "inputs")
+        u = u.reshape(1, -1) if u.ndim == 1 else u
+        if u.ndim != 2 or u.shape[-1] != q.shape[-1]:
+            raise InputError(f"inputs have shape {u.shape} but states have {q.shape[-1]} columns; "
+                             f"pass (m, {q.shape[-1]}) inputs at the same times")
         check_finite(u, "inputs")
         Ubar = (u[:, 2:] + 2 * u[:, 1:-1] + u[:, :-2]) / 4
     return Qbar, D1, D2, Ubar

@@ -23,6 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from ._checks import check_matrix, check_positive, check_vector, pow2_scale
+from .errors import InputError
+
 
 @dataclass(frozen=True)
 class Sampling:
@@ -35,7 +38,14 @@ class Sampling:
 
 def nnls_tolerance(C: np.ndarray, b: np.ndarray, tol: float, max_terms: int | None = None) -> tuple[np.ndarray, float]:
     """Lawson-Hanson non-negative least squares, stopped at ||C w - b|| <= tol ||b||."""
+    C = check_matrix(C, "C")
     m, n = C.shape
+    b = check_vector(b, "b", m)
+    tol = check_positive(tol, "tol")
+    # one power-of-two scale for C and b: exact, keeps the norms finite for data ~ 1e+-160,
+    # and leaves w (the solution of C w = b) unchanged
+    s = pow2_scale(C, b)
+    C, b = C / s, b / s
     w = np.zeros(n)
     passive = np.zeros(n, dtype=bool)
     bnorm = np.linalg.norm(b)
@@ -73,8 +83,15 @@ def ecsw(V: np.ndarray, Qh: np.ndarray, g, *, tol: float = 1e-4, max_points: int
         g: pointwise nonlinearity U'.
         tol: relative residual of the reduced-force fit at which to stop adding points.
     """
+    V = check_matrix(V, "V")
+    Qh = check_matrix(Qh, "Qh", rows=V.shape[1])
+    if not callable(g):
+        raise InputError(f"g must be a callable (the pointwise nonlinearity), got {type(g).__name__}")
     Z = V @ Qh  # (n, K)
-    G = g(Z)
+    G = np.asarray(g(Z))
+    if G.shape != Z.shape or not np.all(np.isfinite(G)):
+        raise InputError(f"g(V Qh) must return finite values of shape {Z.shape}, got shape "
+                         f"{G.shape}" + ("" if G.shape != Z.shape else " with non-finite values"))
     r, K = Qh.shape
     # C[(k, a), i] = V[i, a] g(Z[i, k])
     C = np.einsum("ia,ik->kai", V, G).reshape(K * r, V.shape[0])
