@@ -37,18 +37,84 @@ def test_killed_run_resumes_to_the_same_snapshots(tmp_path):
     assert not ckpt.exists()  # cleaned up after completion
 
 
-def test_checkpoint_from_other_settings_is_refused(tmp_path):
+class _Killed(Exception):
+    pass
+
+
+def _interrupted_run(monkeypatch, system, q0, v0, prefix, *, kill_after, **kw):
+    """Run the FOM with checkpoints and stop it (an exception from the step) after
+    ``kill_after`` steps, leaving its checkpoint files behind, as a killed process would."""
     import dolfinx_lopinf as lo
+
+    original = lo.MidpointIntegrator.step
+    calls = {"n": 0}
+
+    def step(self):
+        calls["n"] += 1
+        if calls["n"] > kill_after:
+            raise _Killed
+        original(self)
+
+    with monkeypatch.context() as m:
+        m.setattr(lo.MidpointIntegrator, "step", step)
+        with pytest.raises(_Killed):
+            lo.run(system, q0, v0, progress=False, checkpoint=prefix, **kw)
+
+
+def test_checkpoint_of_an_older_format_is_refused_with_its_name(tmp_path):
+    import dolfinx_lopinf as lo
+    from dolfinx_lopinf.errors import FileFormatError
     from dolfinx_lopinf.scenes import beam as scene
 
     b = scene.build(200)
     q0, v0 = b.initial_state()
     prefix = tmp_path / "c"
-    Path(f"{prefix}.rank0.npz").write_bytes(b"")  # placeholder to be replaced by a real one
-    np.savez(f"{prefix}.rank0.npz", settings=np.zeros(9), k=1)
-    with pytest.raises(ValueError, match="other settings"):
+    np.savez(f"{prefix}.rank0.npz", settings=np.zeros(9), k=1)  # the format before issue 13
+    with pytest.raises(FileFormatError, match=r"c\.rank0\.npz.*checkpoint_restart=True"):
         lo.run(b.system, q0, v0, scene.DT, 0.001, state_map=b.state_map, progress=False,
                checkpoint=prefix)
+
+
+def test_stale_checkpoint_of_another_run_is_refused(tmp_path, monkeypatch):
+    """A parameter sweep reusing a prefix: the run with EI doubled must not resume the killed
+    run with the paper's EI (issue 13, item 1); nor a run from another initial state."""
+    import dolfinx_lopinf as lo
+    from dolfinx_lopinf.errors import CheckpointMismatchError
+    from dolfinx_lopinf.scenes import beam as scene
+
+    kw = dict(dt=scene.DT, t_end=0.004, record_every=10, checkpoint_every=100)
+    b = scene.build(60)
+    q0, v0 = b.initial_state()
+    prefix = tmp_path / "sweep"
+    _interrupted_run(monkeypatch, b.system, q0, v0, prefix, kill_after=250,
+                     state_map=b.state_map, **kw)
+    assert Path(f"{prefix}.rank0.npz").exists()
+    stiff = scene.build(60, ei=2 * scene.EI)
+    with pytest.raises(CheckpointMismatchError, match="step residual") as err:
+        lo.run(stiff.system, q0, v0, state_map=stiff.state_map, progress=False,
+               checkpoint=prefix, **kw)
+    assert "initial state" not in str(err.value) and "checkpoint_restart" in str(err.value)
+    q0_other, _ = b.initial_state(a=0.5)
+    with pytest.raises(CheckpointMismatchError, match=r"initial state q0") as err:
+        lo.run(b.system, q0_other, v0, state_map=b.state_map, progress=False,
+               checkpoint=prefix, **kw)
+    assert "residual" not in str(err.value)
+    with pytest.raises(CheckpointMismatchError, match="record_every: 10 in the checkpoint, 20"):
+        lo.run(b.system, q0, v0, state_map=b.state_map, progress=False, checkpoint=prefix,
+               **dict(kw, record_every=20))
+    # the same run resumes (from step 200) and equals an unbroken run; restart starts over
+    snaps, info = lo.run(b.system, q0, v0, state_map=b.state_map, progress=False,
+                         checkpoint=prefix, **kw)
+    ref, _ = lo.run(b.system, q0, v0, state_map=b.state_map, progress=False, **kw)
+    assert info["resumed_from_step"] == 200
+    assert np.array_equal(snaps.Q, ref.Q) and np.array_equal(snaps.V, ref.V)
+    assert np.array_equal(snaps.energy, ref.energy)
+    _interrupted_run(monkeypatch, stiff.system, q0, v0, prefix, kill_after=150,
+                     state_map=stiff.state_map, **kw)
+    _, info = lo.run(b.system, q0, v0, state_map=b.state_map, progress=False,
+                     checkpoint=prefix, checkpoint_restart=True, **kw)
+    assert info["resumed_from_step"] == 0
+    assert not list(tmp_path.glob("sweep*"))
 
 
 def test_stability_suite(tmp_path):
