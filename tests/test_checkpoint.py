@@ -128,4 +128,7 @@ def test_stability_suite(tmp_path):
             assert row["symmetric"] and row["min_real_eig_K"] > 0 and row["result"] == "bounded"
     assert rows["beam theta block x 1e8, lopinf"]["test_error"] < 1e-2
     assert "StepFailed" in rows["sine-Gordon FOM, dt = 5 (too large)"]["result"]
-    assert "numerical rank 2" in rows["rank-deficient training data"]["result"]
+    deficient = rows["rank-deficient training data"]
+    assert "rank 2 < 3" in deficient["result"] and "strict=True: RankDeficientDataError" in deficient["result"]
+    assert deficient["symmetric"] and deficient["min_real_eig_K"] >= 1e-8
+    assert deficient["fit_relative_residual"] < 1e-3
