@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._dolfinx import PETSc, dolfinx
+from .errors import InputError
 from .fom import StateMap, owned_global_dofs
 from .lagrangian import LagrangianSystem
 from .rom import LagrangianROM
@@ -27,7 +28,12 @@ def reduced_matrix(A: "PETSc.Mat", V, basis: np.ndarray, state_map: StateMap) ->
     ``basis`` must be available on every rank (it is small: n x r).
     """
     comm = V.mesh.comm
-    W = state_map.to_dofs(np.asarray(basis, dtype=float))  # global dof coordinates
+    basis = np.asarray(basis, dtype=float)
+    n = len(state_map.order)
+    if basis.ndim != 2 or basis.shape[0] != n or not np.all(np.isfinite(basis)):
+        raise InputError(f"basis must be a finite (n, r) array with n = {n} state rows (every "
+                         f"rank), got shape {basis.shape}")
+    W = state_map.to_dofs(basis)  # global dof coordinates
     owned = owned_global_dofs(V)
     x, y = A.createVecRight(), A.createVecLeft()
     AW = np.empty((len(owned), W.shape[1]))
@@ -57,8 +63,10 @@ def dense_state_matrix(form, V, state_map: StateMap) -> np.ndarray:
 
 def galerkin_rom(system: LagrangianSystem, basis: np.ndarray, state_map: StateMap) -> LagrangianROM:
     """Galerkin ROM (Mh, Kh) of a quadratic Lagrangian in a state-coordinate basis (n, r)."""
+    if not isinstance(system, LagrangianSystem):
+        raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
     if not system.is_quadratic:
-        raise ValueError("the Galerkin ROM here is for quadratic Lagrangians (linear systems)")
+        raise InputError("the Galerkin ROM here is for quadratic Lagrangians (linear systems)")
     fem = dolfinx.fem
     mats = []
     for form in (system.mass_form, system.stiffness_form):

@@ -29,6 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from ._dolfinx import MPI, dolfinx
+from .errors import InputError
+from .lagrangian import _same_dofs
 
 
 class StreamingPOD:
@@ -44,8 +46,11 @@ class StreamingPOD:
     """
 
     def __init__(self, V, capacity: int, *, weight=None, directory=None, chunk: int = 65536):
-        if capacity < 2:
-            raise ValueError(f"capacity must be at least 2 snapshots, got {capacity}")
+        if not isinstance(V, dolfinx.fem.FunctionSpace):
+            raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
+        for name, value, low in (("capacity", capacity, 2), ("chunk", chunk, 1)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
         self.V, self.comm = V, V.mesh.comm
         self.n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.capacity, self.chunk, self.weight = int(capacity), int(chunk), weight
@@ -63,15 +68,24 @@ class StreamingPOD:
 
     def append(self, q) -> None:
         """Store one snapshot: a dolfinx Function on V or this rank's owned values."""
+        problem = None
         if isinstance(q, dolfinx.fem.Function):
+            W = q.function_space
+            if W._cpp_object is not self.V._cpp_object and not _same_dofs(W._cpp_object, self.V):
+                problem = "the snapshot is a Function on another mesh or function space than V"
             q = q.x.array[: self.n_owned]
         q = np.asarray(q, dtype=float)
-        if q.shape != (self.n_owned,):
-            raise ValueError(f"snapshot has shape {q.shape}; this rank owns {self.n_owned} dofs")
-        if self.count >= self.capacity:
-            raise ValueError(f"StreamingPOD is full ({self.capacity} snapshots); raise capacity")
-        if not np.all(np.isfinite(q)):
-            raise ValueError(f"snapshot {self.count} contains NaN or inf")
+        if problem is not None:
+            pass
+        elif q.shape != (self.n_owned,):
+            problem = f"snapshot has shape {q.shape}; this rank owns {self.n_owned} dofs"
+        elif self.count >= self.capacity:
+            problem = f"StreamingPOD is full ({self.capacity} snapshots); raise capacity"
+        elif not np.all(np.isfinite(q)):
+            problem = f"snapshot {self.count} contains NaN or inf"
+        # collective verdict: a rank that refuses does not leave the others appending
+        if self.comm.allreduce(problem is not None, op=MPI.LOR):
+            raise InputError(problem or f"snapshot {self.count} was refused on another rank")
         self._Q[self.count] = q
         if self.weight is not None:
             self._x.array[:] = q
@@ -104,7 +118,7 @@ class StreamingPOD:
         sv = np.sqrt(np.maximum(lam, 0.0))
         rank = self.numerical_rank(rank_rtol)
         if r > rank:
-            raise ValueError(f"asked for r = {r} but the {self.count} snapshots have numerical rank "
+            raise InputError(f"asked for r = {r} but the {self.count} snapshots have numerical rank "
                              f"{rank} (singular values {sv[: r + 1]}); lower r or record richer data")
         coef = Psi[:, :r] / np.sqrt(lam[:r])  # V = Q coef
         Q = self._Q[: self.count]
@@ -118,7 +132,7 @@ class StreamingPOD:
     def _eigen(self):
         """Eigenpairs of G, descending, cached until the next append (collective)."""
         if self.count < 2:
-            raise ValueError(f"POD needs at least 2 snapshots, {self.count} appended")
+            raise InputError(f"POD needs at least 2 snapshots, {self.count} appended")
         if self._eig is None or self._eig[0] != self.count:
             lam, Psi = np.linalg.eigh(self.gram())
             order = np.argsort(lam)[::-1]

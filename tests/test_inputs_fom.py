@@ -364,3 +364,22 @@ def test_bc_check_and_checkpoint_fingerprint_agree_on_two_ranks(tmp_path):
     assert lines == ["rank0:mapped,refused,stale-refused,resumed100,equal",
                      "rank1:mapped,refused,stale-refused,resumed100"], proc.stdout
     assert not list(tmp_path.glob("ck.rank*"))
+
+
+# -- the rest of the DOLFINx layer -----------------------------------------------------------
+
+def test_streaming_pod_refuses_a_function_of_another_mesh(tmp_path):
+    from dolfinx_lopinf.streaming import StreamingPOD
+
+    V = _p1()
+    with StreamingPOD(V, capacity=3, directory=tmp_path) as spod:
+        with pytest.raises(InputError, match="another mesh or function space"):
+            spod.append(dolfinx.fem.Function(_p1()))
+        assert spod.count == 0
+    with pytest.raises(InputError, match="capacity must be an integer >= 2"):
+        StreamingPOD(V, capacity=2.5)
+
+
+def test_galerkin_rom_refuses_a_basis_of_the_wrong_size(beam):
+    with pytest.raises(InputError, match=r"basis must be a finite \(n, r\) array with n = 400"):
+        lo.galerkin_rom(beam.system, np.eye(399)[:, :4], beam.state_map)
