@@ -54,14 +54,15 @@ def as_real_array(value, name: str, *, dtype=float) -> np.ndarray:
         raise InputError(f"{name} cannot be converted to a float array ({a.dtype}): {exc}") from None
 
 
-def check_finite(array: np.ndarray, name: str) -> None:
-    """Raise ``InputError`` naming the first non-finite entry of ``array``."""
+def check_finite(array: np.ndarray, name: str,
+                 remedy: str = "clean the data or shorten the window") -> None:
+    """Raise ``InputError`` naming the first non-finite entry of ``array`` (and ``remedy``)."""
     finite = np.isfinite(array)
     if not finite.all():
         bad = np.argwhere(~finite)[0]
         raise InputError(
             f"{name} contains {int((~finite).sum())} non-finite value(s) (NaN or inf), "
-            f"first at index {tuple(int(i) for i in bad)}; clean the data or shorten the window"
+            f"first at index {tuple(int(i) for i in bad)}; {remedy}"
         )
 
 
@@ -93,14 +94,15 @@ def check_vector(array, name: str, size: int | None = None) -> np.ndarray:
     return a
 
 
-def check_square(array, name: str, size: int | None = None) -> np.ndarray:
+def check_square(array, name: str, size: int | None = None,
+                 remedy: str = "an operator must be finite (did its fit fail?)") -> np.ndarray:
     """Return ``array`` as a finite square float matrix (size x size when given)."""
     a = as_real_array(array, name)
     if a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] == 0:
         raise InputError(f"{name} must be a non-empty square matrix, got shape {a.shape}")
     if size is not None and a.shape != (size, size):
         raise InputError(f"{name} must have shape ({size}, {size}), got {a.shape}")
-    check_finite(a, name)
+    check_finite(a, name, remedy)
     return a
 
 
@@ -153,17 +155,17 @@ def check_uniform_times(times, rtol: float = 1e-6) -> float:
     check_finite(t, "times")
     steps = np.diff(t)
     dt = float(steps.mean())
-    if not dt > 0 or steps.min() <= 0:
-        k = int(np.argmin(steps))
-        raise InputError(
-            f"times must be strictly increasing; times[{k}] = {t[k]!r} is followed by "
-            f"times[{k + 1}] = {t[k + 1]!r}; sort the samples and drop duplicates")
     rounding = 2.0 * eps * float(np.max(np.abs(t)))
-    if rounding > 0.25 * dt:
+    if dt > 0 and rounding > 0.25 * dt:
         raise InputError(
             f"times are too coarse to resolve their spacing: {raw.dtype} times of magnitude "
             f"{np.max(np.abs(t)):.6g} are rounded to ~{rounding:.3g}, the spacing is {dt:.6g}; "
             "pass float64 times, or times relative to the first sample (t - t[0])")
+    if not dt > 0 or steps.min() <= 0:
+        k = int(np.argmin(steps))
+        raise InputError(
+            f"times must be strictly increasing; times[{k}] = {float(t[k])!r} is followed by "
+            f"times[{k + 1}] = {float(t[k + 1])!r}; sort the samples and drop duplicates")
     tol = rtol * dt + rounding
     dev = np.abs(steps - dt)
     if dev.max() > tol:
@@ -171,7 +173,8 @@ def check_uniform_times(times, rtol: float = 1e-6) -> float:
         raise InputError(
             "times must be uniformly spaced and increasing (finite differences assume it); "
             f"spacing ranges over [{steps.min():.6g}, {steps.max():.6g}] (mean {dt:.6g}), "
-            f"worst between times[{k}] = {t[k]!r} and times[{k + 1}] = {t[k + 1]!r}; resample "
+            f"worst between times[{k}] = {float(t[k])!r} and times[{k + 1}] = "
+            f"{float(t[k + 1])!r}; resample "
             "the data onto a uniform grid or cut the window at the gap")
     return dt
 

@@ -99,7 +99,7 @@ class Basis:
         cols, new_blocks, start = [], {}, 0
         for (name, (rows, bcols)), size in zip(self.blocks.items(), sizes):
             if size > len(bcols):
-                raise ValueError(f"block {name!r} has only {len(bcols)} basis vectors, asked {size}")
+                raise InputError(f"block {name!r} has only {len(bcols)} basis vectors, asked {size}")
             cols.extend(bcols[:size])
             new_blocks[name] = (rows, np.arange(start, start + size))
             start += size
@@ -108,7 +108,7 @@ class Basis:
 
 def _split(r: int, names: list) -> list[int]:
     if r < len(names) or r % len(names):
-        raise ValueError(
+        raise InputError(
             f"r = {r} must be a positive multiple of the number of blocks ({len(names)}: "
             f"{', '.join(map(str, names))}) so each block gets r / {len(names)} vectors"
         )
@@ -157,7 +157,7 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
         U, s, _ = np.linalg.svd(Q[rows], full_matrices=False)
         rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
         if size > rank:
-            raise ValueError(
+            raise InputError(
                 f"block {name!r}: asked for {size} basis vectors but the snapshots have "
                 f"numerical rank {rank} (singular values {s[: size + 1]}); lower r or record "
                 "richer data"
@@ -184,6 +184,6 @@ def _weighted_pod(Q, r, W, rank_rtol):
     U, s, _ = np.linalg.svd(R @ Q, full_matrices=False)
     rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
     if r > rank:
-        raise ValueError(f"asked for {r} basis vectors but the snapshots have numerical rank {rank}")
+        raise InputError(f"asked for {r} basis vectors but the snapshots have numerical rank {rank}")
     V = scipy.linalg.solve_triangular(R, U[:, :r], lower=False)
     return Basis(V, {"all": s}, {"all": (np.arange(n), np.arange(r))}, W)

@@ -59,8 +59,8 @@ def _initial_state(q0, v0, r):
     q0, v0 = (as_real_array(a, name).reshape(-1) for a, name in ((q0, "q0"), (v0, "v0")))
     if q0.shape != (r,) or v0.shape != (r,):
         raise InputError(f"q0 and v0 must have shape ({r},), got {q0.shape} and {v0.shape}")
-    check_finite(q0, "q0")
-    check_finite(v0, "v0")
+    check_finite(q0, "q0", "pass a finite initial state")
+    check_finite(v0, "v0", "pass a finite initial velocity")
     return q0, v0
 
 
@@ -137,14 +137,14 @@ class LagrangianROM:
             if B.ndim != 2 or B.shape[0] != r or B.shape[1] == 0:
                 raise InputError(f"B must have shape ({r}, m) with m >= 1, got {B.shape} "
                                  "(pass B=None for an unforced model)")
-            check_finite(B, "B")
+            check_finite(B, "B", "an operator must be finite (did its fit fail?)")
             object.__setattr__(self, "B", B)
         if self.E is not None:
             E = as_real_array(self.E, "E")
             E = E.reshape(1, -1) if E.ndim == 1 else E
             if E.ndim != 2 or E.shape[1] != r or E.shape[0] == 0:
                 raise InputError(f"E must have shape (p, {r}), got {E.shape}")
-            check_finite(E, "E")
+            check_finite(E, "E", "an operator must be finite (did its fit fail?)")
             object.__setattr__(self, "E", E)
         if self.lagrangian is not False:
             problems = _structure_problems("K", K)
@@ -293,7 +293,7 @@ class LagrangianROM:
             if U.shape != (m, n_u):
                 raise InputError(f"inputs must have shape ({m}, {n_u}) (m inputs at the {where}), "
                                  f"got {U.shape}")
-            check_finite(U, "inputs")
+            check_finite(U, "inputs", "the forcing must be finite")
             return lambda k0, k1: U[:, k0:k1 + (not midpoint)]
 
         last = {}

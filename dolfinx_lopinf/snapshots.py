@@ -76,7 +76,7 @@ class Snapshots:
             if len(ty) > 1 and np.min(np.diff(ty)) <= 0:
                 k = int(np.argmin(np.diff(ty)))
                 raise InputError(f"output_times must be strictly increasing; output_times[{k}] = "
-                                 f"{ty[k]!r} is followed by {ty[k + 1]!r}")
+                                 f"{float(ty[k])!r} is followed by {float(ty[k + 1])!r}")
             object.__setattr__(self, "output_times", ty)
         if self.Y is not None:
             Y = as_real_array(self.Y, "Y")
@@ -106,7 +106,7 @@ class Snapshots:
         tol = 1e-9 * self.dt + 2 * np.finfo(float).eps * np.max(np.abs(self.times))
         keep = (self.times >= t_start - tol) & (self.times <= t_stop + tol)
         if keep.sum() < 2:
-            raise ValueError(f"window [{t_start}, {t_stop}] holds fewer than 2 samples")
+            raise InputError(f"window [{t_start}, {t_stop}] holds fewer than 2 samples")
 
         def cut(a):
             return None if a is None else a[..., keep]
