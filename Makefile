@@ -10,7 +10,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench test test-fast venv clean
+.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench test test-fast test-rounding venv clean
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -47,6 +47,13 @@ test: venv
 
 test-fast: venv
 	$(PY) -m pytest -q -m "not slow and not mpi"
+
+# The numerical core under a second rounding condition: every array entering the fits and the
+# POD perturbed at 1e-15 relative (seeded; tests/conftest.py) and two BLAS threads. A verdict
+# that changes here was decided by rounding.
+CORE_TESTS = tests/test_engine.py tests/test_numpy_core.py tests/test_rank.py tests/test_inputs_core.py
+test-rounding: venv
+	LOPINF_TEST_PERTURB=1e-15 OPENBLAS_NUM_THREADS=2 OMP_NUM_THREADS=2 $(PY) -m pytest -q $(CORE_TESTS)
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache
