@@ -14,7 +14,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -25,6 +24,7 @@ import numpy as np
 from ._dolfinx import MPI, PETSc, dolfinx
 from .errors import CheckpointMismatchError, FileFormatError, InputError
 from .integrators import MidpointIntegrator, _check_dt
+from .io_atomic import atomic_savez
 from .lagrangian import LagrangianSystem
 from .snapshots import Snapshots
 
@@ -216,32 +216,6 @@ def _collective(comm, problem, cls=InputError):
 
 _FORMAT = "dolfinx_lopinf checkpoint 2"
 _CHUNK_KEYS = ("Q", "Vel", "energies", "energy_times", "ys", "y_times")
-
-
-def _atomic_savez(path: Path, **arrays) -> None:
-    """np.savez to a temporary file in the same directory, fsync, os.replace, fsync the
-    directory: a kill leaves either the previous file or the new one."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    try:
-        dfd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    except OSError:  # pragma: no cover - platforms without directory fsync
-        pass
 
 
 def _crc(arrays: dict) -> int:
@@ -634,10 +608,10 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
                  "ys": (np.array(ys[saved["ny"]:], dtype=float).reshape(-1, p_out) if p_out
                         else np.zeros((0, 0))),
                  "y_times": np.array(y_times[saved["ny"]:], dtype=float)}
-        _atomic_savez(files.chunk(c), **chunk)
+        atomic_savez(files.chunk(c), **chunk)
         crcs = saved["crc"] + [_crc(chunk)]
         head = files.heads[len(crcs) % 2]
-        _atomic_savez(head, format=np.array(_FORMAT), fingerprint=np.array(json.dumps(fingerprint)),
+        atomic_savez(head, format=np.array(_FORMAT), fingerprint=np.array(json.dumps(fingerprint)),
                       k=np.array(k), q=stepper.q.x.array, p=stepper.p.array, t=np.array(stepper.t),
                       n_chunks=np.array(len(crcs)), chunk_crc=np.array(crcs, dtype=np.int64),
                       filled=np.array(filled))

@@ -440,7 +440,7 @@ def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
                                                    + ([-B] if B is not None else [])), blocks, eps))
     if not info["converged"]:
         warnings.warn(f"{solver} stopped after {info['iterations']} iterations without meeting "
-                      "its tolerance; see the certificate's KKT residuals", RuntimeWarning,
+                      "its tolerance; see the certificate's KKT residuals", SolverWarning,
                       stacklevel=3)
     return MechanicalOperators(K, C, B, cert)
 
@@ -478,7 +478,7 @@ def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
     Bv = None if negB is None else -s * negB.value
     cert = _certificate(gram, Kv, Cv, Bv, "cvxpy-clarabel", prob.status, seconds, eps)
     if prob.status != "optimal":
-        warnings.warn(f"Clarabel returned {prob.status}; check the certificate", RuntimeWarning)
+        warnings.warn(f"Clarabel returned {prob.status}; check the certificate", SolverWarning)
     return MechanicalOperators(Kv, Cv, Bv, cert)
 
 

@@ -49,7 +49,7 @@ def _beam_case(snaps, M, K, noise, scale_theta, method, r=10, every=10, seed=0, 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         ops = (infer_mechanical if method == "lopinf" else infer_opinf)(Qh, None, ddQh, damping=False)
-    rom = LagrangianROM(K=ops.K)
+    rom = LagrangianROM(K=ops.K, lagrangian=False if method == "opinf" else None)
     dt = snaps.dt
     W = basis.V / scale[:, None]  # back to physical state coordinates
     qh0 = basis.project(snaps.Q[:, 0] * scale)
