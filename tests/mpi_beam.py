@@ -18,6 +18,6 @@ rom = lo.galerkin_rom(b.system, basis.V, b.state_map)
 if MPI.COMM_WORLD.rank == 0:
     # the non-intrusive operators from the gathered snapshots, as a user would fit them
     Qh, _, ddQh = lo.derivatives(basis.project(snaps.Q), snaps.times)
-    K_lopinf = lo.infer_mechanical(Qh, None, ddQh, damping=False).K
+    fit = lo.infer_mechanical(Qh, None, ddQh, damping=False)
     np.savez(out, Q=snaps.Q, V=snaps.V, Y=snaps.Y, E=snaps.energy, M=rom.M, K=rom.K,
-             K_lopinf=K_lopinf, basis=basis.V)
+             K_lopinf=fit.K, fit_condition=fit.certificate["data_condition"], basis=basis.V)

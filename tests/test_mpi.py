@@ -34,9 +34,14 @@ def _serial_and_parallel(script, tmp_path):
 @pytest.mark.mpi
 def test_beam_fom_two_ranks_equals_serial(tmp_path):
     a, b = _serial_and_parallel(SCRIPT, tmp_path)
-    for key in ("Q", "V", "Y", "E", "M", "K", "K_lopinf"):
+    for key in ("Q", "V", "Y", "E", "M", "K"):  # FOM data and Galerkin sums: well conditioned
         scale = np.abs(a[key]).max()
         assert np.abs(a[key] - b[key]).max() <= 1e-10 * scale, key
+    # the L-OpInf fit amplifies the data's difference by at most its condition number (the
+    # ridge bounds it by 1e9); the tolerance is that bound, not a constant
+    delta = max(np.abs(a[k] - b[k]).max() / np.abs(a[k]).max() for k in ("Q", "V"))
+    tol = max(1e-10, 10 * min(float(a["fit_condition"]), 1e9) * delta)
+    assert np.abs(a["K_lopinf"] - b["K_lopinf"]).max() <= tol * np.abs(a["K_lopinf"]).max(), (tol, delta)
 
 
 @pytest.mark.mpi

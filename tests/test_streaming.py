@@ -28,8 +28,11 @@ def test_streaming_pod_equals_dense_and_serial(tmp_path):
         assert np.abs(run["Qh"] - Qh_ref).max() < 1e-8 * np.abs(Qh_ref).max()
         # and Qh = V^T M Q
         assert np.allclose(run["Qh"], run["V"].T @ run["M"] @ run["Q"], atol=1e-10 * np.abs(run["Qh"]).max())
-    assert np.abs(a["Qh"] - b["Qh"]).max() < 1e-10 * np.abs(a["Qh"]).max()
-    assert np.abs(a["V"] - b["V"]).max() < 1e-10 * np.abs(a["V"]).max()
+    # 1 vs 2 ranks: the same subspace and coordinates. Signs are aligned first: the package's
+    # sign convention (largest entry > 0) is a decision two near-equal entries could flip.
+    signs = np.sign(np.sum(a["V"] * b["V"], axis=0))
+    assert np.abs(a["Qh"] - signs[:, None] * b["Qh"]).max() < 1e-10 * np.abs(a["Qh"]).max()
+    assert np.abs(a["V"] - signs * b["V"]).max() < 1e-10 * np.abs(a["V"]).max()
     assert int(a["disk"]) == 2 * 30 * 8 * a["Q"].shape[0]
 
 
