@@ -82,3 +82,33 @@ def beam():
     from dolfinx_lopinf.scenes import beam as scene
 
     return scene.build(200)
+
+
+class Killed(Exception):
+    """Raised by ``interrupted_run``'s integrator step: the run dies as a killed process would."""
+
+
+@pytest.fixture
+def interrupted_run(monkeypatch):
+    """``interrupted_run(system, q0, v0, prefix, kill_after, **run_kwargs)``: run the FOM with
+    checkpoints and stop it (an exception from the step) after ``kill_after`` steps, leaving
+    its checkpoint files behind."""
+    import dolfinx_lopinf as lo
+
+    def run(system, q0, v0, prefix, kill_after, **kw):
+        original = lo.MidpointIntegrator.step
+        calls = {"n": 0}
+
+        def step(self):
+            calls["n"] += 1
+            if calls["n"] > kill_after:
+                raise Killed
+            original(self)
+
+        with monkeypatch.context() as m:
+            m.setattr(lo.MidpointIntegrator, "step", step)
+            with pytest.raises(Killed):
+                lo.run(system, q0, v0, progress=False, checkpoint=prefix, **kw)
+
+    return run
+

@@ -37,30 +37,6 @@ def test_killed_run_resumes_to_the_same_snapshots(tmp_path):
     assert not ckpt.exists()  # cleaned up after completion
 
 
-class _Killed(Exception):
-    pass
-
-
-def _interrupted_run(monkeypatch, system, q0, v0, prefix, *, kill_after, **kw):
-    """Run the FOM with checkpoints and stop it (an exception from the step) after
-    ``kill_after`` steps, leaving its checkpoint files behind, as a killed process would."""
-    import dolfinx_lopinf as lo
-
-    original = lo.MidpointIntegrator.step
-    calls = {"n": 0}
-
-    def step(self):
-        calls["n"] += 1
-        if calls["n"] > kill_after:
-            raise _Killed
-        original(self)
-
-    with monkeypatch.context() as m:
-        m.setattr(lo.MidpointIntegrator, "step", step)
-        with pytest.raises(_Killed):
-            lo.run(system, q0, v0, progress=False, checkpoint=prefix, **kw)
-
-
 def test_checkpoint_of_an_older_format_is_refused_with_its_name(tmp_path):
     import dolfinx_lopinf as lo
     from dolfinx_lopinf.errors import FileFormatError
@@ -75,7 +51,7 @@ def test_checkpoint_of_an_older_format_is_refused_with_its_name(tmp_path):
                checkpoint=prefix)
 
 
-def test_stale_checkpoint_of_another_run_is_refused(tmp_path, monkeypatch):
+def test_stale_checkpoint_of_another_run_is_refused(tmp_path, interrupted_run):
     """A parameter sweep reusing a prefix: the run with EI doubled must not resume the killed
     run with the paper's EI (issue 13, item 1); nor a run from another initial state."""
     import dolfinx_lopinf as lo
@@ -86,7 +62,7 @@ def test_stale_checkpoint_of_another_run_is_refused(tmp_path, monkeypatch):
     b = scene.build(60)
     q0, v0 = b.initial_state()
     prefix = tmp_path / "sweep"
-    _interrupted_run(monkeypatch, b.system, q0, v0, prefix, kill_after=250,
+    interrupted_run(b.system, q0, v0, prefix, 250,
                      state_map=b.state_map, **kw)
     assert Path(f"{prefix}.rank0.npz").exists()
     stiff = scene.build(60, ei=2 * scene.EI)
@@ -109,7 +85,7 @@ def test_stale_checkpoint_of_another_run_is_refused(tmp_path, monkeypatch):
     assert info["resumed_from_step"] == 200
     assert np.array_equal(snaps.Q, ref.Q) and np.array_equal(snaps.V, ref.V)
     assert np.array_equal(snaps.energy, ref.energy)
-    _interrupted_run(monkeypatch, stiff.system, q0, v0, prefix, kill_after=150,
+    interrupted_run(stiff.system, q0, v0, prefix, 150,
                      state_map=stiff.state_map, **kw)
     _, info = lo.run(b.system, q0, v0, state_map=b.state_map, progress=False,
                      checkpoint=prefix, checkpoint_restart=True, **kw)

@@ -96,3 +96,22 @@ def test_recorder_rejects_bad_records():
     with pytest.raises(ValueError, match="NaN"):
         rec.record(0.2, u, inputs=[1.0])
     assert len(rec) == 2
+
+
+def test_stability_cantilever_is_the_demo_cantilever():
+    """scenes/cantilever.py is a copy of the demo's self-contained user program (the installed
+    package cannot import demos/); the two must stay the same model."""
+    import importlib.util
+
+    import dolfinx_lopinf as lo
+    from dolfinx_lopinf.scenes import cantilever
+
+    spec = importlib.util.spec_from_file_location("existing_code", ROOT / "demos" / "existing_code.py")
+    demo = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(demo)
+    for name in ("LENGTH", "WIDTH", "HEIGHT", "E_MOD", "NU", "RHO", "ALPHA", "BETA", "DT"):
+        assert getattr(demo, name) == getattr(cantilever, name), name
+    runs = [sim(cantilever.train_load, 0.05, (12, 2, 2), lambda q: lo.SnapshotRecorder(q))[1].snapshots()
+            for sim in (demo.simulate_cantilever, cantilever.simulate)]
+    assert runs[0].Q.shape == runs[1].Q.shape and np.abs(runs[0].Q).max() > 0
+    assert np.array_equal(runs[0].Q, runs[1].Q) and np.array_equal(runs[0].U, runs[1].U)

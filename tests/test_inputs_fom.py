@@ -198,26 +198,6 @@ def test_recorder_record_is_all_or_nothing():
 
 # -- items 10 and 11: checkpoints ------------------------------------------------------------
 
-class _Killed(Exception):
-    pass
-
-
-def _killed_run(monkeypatch, system, q0, v0, prefix, kill_after, **kw):
-    original = lo.MidpointIntegrator.step
-    calls = {"n": 0}
-
-    def step(self):
-        calls["n"] += 1
-        if calls["n"] > kill_after:
-            raise _Killed
-        original(self)
-
-    with monkeypatch.context() as m:
-        m.setattr(lo.MidpointIntegrator, "step", step)
-        with pytest.raises(_Killed):
-            lo.run(system, q0, v0, progress=False, checkpoint=prefix, **kw)
-
-
 def _written_bytes():
     with open("/proc/self/io") as f:
         return next(int(line.split()[1]) for line in f if line.startswith("wchar"))
@@ -237,13 +217,13 @@ def test_checkpoints_write_only_what_changed(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-def test_corrupt_checkpoint_names_the_file_and_the_remedy(tmp_path, monkeypatch):
+def test_corrupt_checkpoint_names_the_file_and_the_remedy(tmp_path, interrupted_run):
     V = _p1()
     system = _string(V)
     q0, v0 = _initial(V)
     kw = dict(dt=DT, t_end=0.1, record_every=2, checkpoint_every=20)
     prefix = tmp_path / "c"
-    _killed_run(monkeypatch, system, q0, v0, prefix, 70, **kw)
+    interrupted_run(system, q0, v0, prefix, 70, **kw)
     head = Path(f"{prefix}.rank0.npz")  # a head (step 40; the old format's only file)
     data = head.read_bytes()
     head.write_bytes(data[: len(data) // 2])
@@ -262,7 +242,7 @@ def test_corrupt_checkpoint_names_the_file_and_the_remedy(tmp_path, monkeypatch)
     assert not list(tmp_path.iterdir())
 
 
-def test_checkpoint_of_a_changed_forcing_is_refused(tmp_path, monkeypatch):
+def test_checkpoint_of_a_changed_forcing_is_refused(tmp_path, interrupted_run):
     V = _p1()
     q, qt = dolfinx.fem.Function(V), dolfinx.fem.Function(V)
     t = dolfinx.fem.Constant(V.mesh, PETSc.ScalarType(0.0))
@@ -273,7 +253,7 @@ def test_checkpoint_of_a_changed_forcing_is_refused(tmp_path, monkeypatch):
                                  forcing=amp * ufl.sin(5 * t) * v * ufl.dx, time=t)
     q0, v0 = _initial(V)
     kw = dict(dt=DT, t_end=0.1, checkpoint_every=20)
-    _killed_run(monkeypatch, system, q0, v0, tmp_path / "f", 50, **kw)
+    interrupted_run(system, q0, v0, tmp_path / "f", 50, **kw)
     amp.value = 1.5
     with pytest.raises(CheckpointMismatchError, match="forcing at a probe state"):
         lo.run(system, q0, v0, progress=False, checkpoint=tmp_path / "f", **kw)
