@@ -1,0 +1,55 @@
+"""A vector P2 field on a unit cube recorded with SnapshotRecorder and written back with
+write_vtx; used by test_vtx.py under 1 and 2 ranks. Saves (rank 0, OUT.npz): the recorded
+states, the states gathered back from states_to_function, the number of steps in the .bp
+index, and - where the adios2 python module is importable - the values read from the file,
+one row per distinct mesh point sorted by coordinates."""
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf.fom import gather_states
+from dolfinx_lopinf.vtx import states_to_function, write_vtx
+import dolfinx
+from mpi4py import MPI
+
+out = Path(sys.argv[1])
+comm = MPI.COMM_WORLD
+msh = dolfinx.mesh.create_unit_cube(comm, 2, 2, 2)
+V = dolfinx.fem.functionspace(msh, ("Lagrange", 2, (3,)))
+u = dolfinx.fem.Function(V)
+rec = lo.SnapshotRecorder(u)
+for k in range(4):
+    t = 0.1 * k
+    u.interpolate(lambda x: np.vstack([x[0] + t, x[1] * x[2] * (1 + t), np.sin(3 * x[0] + t)]))
+    rec.record(t, u)
+snaps = rec.snapshots()
+Q = snaps.Q if comm.rank == 0 else None
+times = snaps.times if comm.rank == 0 else None
+bp = write_vtx(out.with_suffix(".bp"), V, Q, times)     # states on rank 0 only
+
+n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+cols = [states_to_function(V, None if Q is None else Q[:, k], rec.state_map).x.array[:n_owned]
+        for k in range(4)]
+back = gather_states(V, np.column_stack(cols), rec.state_map)
+
+if comm.rank == 0:
+    data = {"Q": Q, "back": back, "t": times,
+            "index_steps": (bp / "md.idx").stat().st_size // 64 - 1}
+    try:
+        import adios2
+    except ImportError:
+        adios2 = None
+    if adios2 is not None:
+        steps, values = [], []
+        with adios2.Stream(str(bp), "r") as f:
+            for st in f.steps():
+                nblocks = len(f.all_blocks_info("u")[st.current_step()])
+                X = np.vstack([f.read("geometry", block_id=b) for b in range(nblocks)])
+                U = np.vstack([f.read("u", block_id=b) for b in range(nblocks)])
+                key, first = np.unique(np.round(X, 10), axis=0, return_index=True)
+                steps.append(float(f.read("step")))
+                values.append(U[first])
+        data.update(read_t=np.array(steps), read_u=np.array(values), read_x=key)
+    np.savez(out, **data)
