@@ -19,6 +19,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
 
 from . import ddt, errors
 from .basis import Basis, pod
+from .fit import ReducedModel, fit
 from .ddt import derivatives, newmark_data, variational_data
 from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
                         infer_wave)
@@ -49,6 +50,6 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["errors", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+__all__ = ["errors", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
            "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

@@ -1,0 +1,128 @@
+"""lo.fit: one call from snapshots to a reduced model that matches the user's integrator
+(numpy only)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf.fit import SchemeMismatchWarning
+
+
+def _system(seed=0, r=4):
+    rng = np.random.default_rng(seed)
+    R = np.linalg.qr(rng.standard_normal((r, r)))[0]
+    K = R @ np.diag([1.0, 9.0, 60.0, 400.0][:r]) @ R.T
+    C = 0.01 * np.eye(r) + 1e-3 * K
+    B = rng.standard_normal((r, 1))
+    return K, C, B
+
+
+#: the 4 coordinates live in a 6-dimensional state (an orthonormal embedding), so n > r
+EMBED = np.linalg.qr(np.random.default_rng(9).standard_normal((6, 4)))[0]
+
+
+def _newmark(K, C, B, dt, n, q0, u):
+    """A Newmark (1/2, 1/4) loop, as a user would write it: states at every step."""
+    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
+    tr = rom.simulate(q0, np.zeros(len(q0)), dt, n, inputs=u)
+    t = dt * np.arange(n + 1)
+    U = np.array([[u(s)[0] for s in t]])
+    return lo.Snapshots(t, EMBED @ tr.Qh, U=U, Y=tr.Qh[:1])
+
+
+def _in_state(model, A):
+    """The reduced operator A in the 4 original coordinates."""
+    W = EMBED.T @ model.basis.V
+    return W @ A @ W.T
+
+
+def _load(t):
+    return np.array([np.sin(3 * t) + 0.5 * np.sin(11 * t)])
+
+
+def test_auto_finds_newmark_and_recovers_the_discrete_operators():
+    K, C, B = _system()
+    dt = 0.02  # dt * omega_max = 0.4: finite differences are biased, the Newmark relation exact
+    snaps = _newmark(K, C, B, dt, 1500, np.array([1.0, 0, 0, 0]), _load)
+    model = lo.fit(snaps, 4)
+    assert model.scheme == "newmark", model.report
+    assert model.report["scheme_errors"]["continuous"] > 10 * model.report["scheme_errors"]["newmark"]
+    # the basis is a rotation of the coordinates: compare the operators in them
+    assert np.allclose(_in_state(model, model.rom.K), K, rtol=0, atol=1e-6 * np.abs(K).max())
+    assert np.allclose(_in_state(model, model.rom.C), C, rtol=0, atol=1e-6 * np.abs(K).max())
+    # and it predicts an unseen load
+    test = _newmark(K, C, B, dt, 800, np.zeros(4), lambda t: np.array([np.cos(5 * t)]))
+    pred = model.predict(800, inputs=lambda t: np.array([np.cos(5 * t)]))
+    assert lo.relative_error(test.Y, pred.Y) < 1e-6
+
+
+def test_continuous_data_continuous_relation_and_auto():
+    """Exact samples of the continuous solution: the 8th-order differences give the continuous
+    K (eigenvalues w^2); "auto" judges by the prediction of the Newmark ROM at the data's dt,
+    where the three-point relation fitted to the samples is at least as good (it absorbs the
+    scheme's phase error), so whichever it picks predicts the held-back data best."""
+    t = 0.01 * np.arange(3000)
+    w = np.array([1.0, 2.3, 4.1])
+    Q = np.cos(w[:, None] * t) * np.array([1.0, 0.5, 0.25])[:, None]
+    with pytest.warns(SchemeMismatchWarning):  # the Newmark relation predicts better at dt
+        cont = lo.fit(lo.Snapshots(t, Q), 3, damping=False, scheme="continuous")
+    assert np.allclose(np.sort(np.linalg.eigvalsh(cont.rom.K)), w**2, rtol=1e-6)
+    auto = lo.fit(lo.Snapshots(t, Q), 3, damping=False)
+    errors = auto.report["scheme_errors"]
+    assert errors[auto.scheme] == min(errors.values())
+
+
+def test_several_trajectories_are_stacked_per_trajectory():
+    K, C, B = _system(1)
+    dt = 0.02
+    trajs = [_newmark(K, C, B, dt, 400, q0, _load) for q0 in (np.array([1.0, 0, 0, 0]),
+                                                              np.array([0, 0.3, 0.5, 0.1]))]
+    model = lo.fit(trajs, 4)
+    assert model.report["trajectories"] == 2 and model.scheme == "newmark"
+    assert np.allclose(_in_state(model, model.rom.K), K, rtol=0, atol=1e-6 * np.abs(K).max())
+    # a full-state initial condition is projected
+    tr = model.predict(t_end=1.0, q0=trajs[1].Q[:, 0], inputs=_load)
+    assert lo.relative_error(trajs[1].Q[:, :51], model.reconstruct(tr.Qh)) < 1e-6
+
+
+def test_a_contradicted_scheme_claim_warns():
+    """Newmark data at dt omega = 0.4, claimed to be continuous: the claim is named wrong."""
+    K, C, B = _system()
+    snaps = _newmark(K, C, B, 0.02, 1500, np.array([1.0, 0, 0, 0]), _load)
+    with pytest.warns(SchemeMismatchWarning, match="'newmark' relation"):
+        lo.fit(snaps, 4, scheme="continuous")
+
+
+def test_save_and_load_round_trip(tmp_path):
+    K, C, B = _system(2)
+    model = lo.fit(_newmark(K, C, B, 0.02, 600, np.array([1.0, 0, 0, 0]), _load), 4)
+    path = model.save(tmp_path / "m")
+    back = lo.ReducedModel.load(path)
+    assert back.scheme == model.scheme and back.dt == model.dt
+    a = model.predict(100, inputs=_load)
+    b = back.predict(100, inputs=_load)
+    assert np.array_equal(a.Qh, b.Qh) and np.array_equal(a.Y, b.Y)
+
+
+def test_bad_trajectory_lists_are_named():
+    K, C, B = _system(3)
+    a = _newmark(K, C, B, 0.02, 300, np.array([1.0, 0, 0, 0]), _load)
+    b = _newmark(K, C, B, 0.01, 300, np.array([1.0, 0, 0, 0]), _load)
+    with pytest.raises(lo.errors.InputError, match=r"snapshots\[1\] has dt"):
+        lo.fit([a, b], 4)
+    c = lo.Snapshots(a.times, a.Q)  # no inputs
+    with pytest.raises(lo.errors.InputError, match=r"snapshots\[1\].*inputs"):
+        lo.fit([a, c], 4)
+    with pytest.raises(lo.errors.InputError, match=r"snapshots\[1\] has 5 state rows"):
+        lo.fit([a, lo.Snapshots(a.times, a.Q[:5], U=a.U)], 3)
+    with pytest.raises(lo.errors.InputError, match="not a Snapshots"):
+        lo.fit([a.Q], 4)
+    with pytest.raises(lo.errors.InputError, match="scheme must be"):
+        lo.fit(a, 4, scheme="generalised-alpha")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = lo.fit(a, 4)
+    with pytest.raises(lo.errors.InputError, match="full"):
+        model.predict(10, q0=np.zeros(7), inputs=_load)
