@@ -38,7 +38,7 @@ from ._dolfinx import dolfinx
 from .errors import InputError
 from .fom import StateMap, owned_global_dofs
 
-__all__ = ["write_vtx", "states_to_function", "state_rows"]
+__all__ = ["state_rows", "states_to_function", "write_vtx"]
 
 _ENGINES = ("BP4", "BP5", "BPFile")
 
@@ -49,6 +49,15 @@ def _space(V):
     if not isinstance(V, dolfinx.fem.FunctionSpace):
         raise InputError(f"V must be a dolfinx FunctionSpace (or Function), got {type(V).__name__}")
     return V
+
+
+def _default_map(V, state_map):
+    if state_map is not None:
+        return state_map
+    try:
+        return StateMap.from_coordinates(V)
+    except ValueError as exc:  # several dofs at one point (DG, Hermite, ...): collective
+        raise InputError(f"{exc} - the one the states were recorded with") from None
 
 
 def _verdict(comm, problem):
@@ -158,8 +167,7 @@ def states_to_function(V, state, state_map: StateMap | None = None, f=None, *, r
     """
     V = _space(V)
     comm = V.mesh.comm
-    if state_map is None:
-        state_map = StateMap.from_coordinates(V)
+    state_map = _default_map(V, state_map)
     problem = None
     if f is not None and (not isinstance(f, dolfinx.fem.Function)
                           or f.function_space._cpp_object is not V._cpp_object):
@@ -180,8 +188,7 @@ def state_rows(V, marker, state_map: StateMap | None = None) -> np.ndarray:
     Collective; Lagrange-type spaces (one coordinate per dof block)."""
     V = _space(V)
     comm = V.mesh.comm
-    if state_map is None:
-        state_map = StateMap.from_coordinates(V)
+    state_map = _default_map(V, state_map)
     _verdict(comm, _map_problem(V, state_map))
     imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
     blocks = dolfinx.fem.locate_dofs_geometrical(V, marker)
@@ -249,8 +256,7 @@ def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name
     """
     V = _space(V)
     comm = V.mesh.comm
-    if state_map is None:
-        state_map = StateMap.from_coordinates(V)
+    state_map = _default_map(V, state_map)
     problem, S, t = None, None, None
     if engine not in _ENGINES:
         problem = f"engine must be one of {_ENGINES}, got {engine!r}"

@@ -9,10 +9,9 @@ from pathlib import Path
 import numpy as np
 
 import dolfinx_lopinf as lo
+from dolfinx_lopinf._dolfinx import MPI, dolfinx  # the wheel's MPI before dolfinx
 from dolfinx_lopinf.fom import gather_states
 from dolfinx_lopinf.vtx import states_to_function, write_vtx
-import dolfinx
-from mpi4py import MPI
 
 out = Path(sys.argv[1])
 comm = MPI.COMM_WORLD
@@ -22,12 +21,20 @@ u = dolfinx.fem.Function(V)
 rec = lo.SnapshotRecorder(u)
 for k in range(4):
     t = 0.1 * k
-    u.interpolate(lambda x: np.vstack([x[0] + t, x[1] * x[2] * (1 + t), np.sin(3 * x[0] + t)]))
+    u.interpolate(lambda x, t=t: np.vstack([x[0] + t, x[1] * x[2] * (1 + t), np.sin(3 * x[0] + t)]))
     rec.record(t, u)
 snaps = rec.snapshots()
 Q = snaps.Q if comm.rank == 0 else None
 times = snaps.times if comm.rank == 0 else None
 bp = write_vtx(out.with_suffix(".bp"), V, Q, times)     # states on rank 0 only
+
+refused = 0
+try:  # a NaN on rank 0 only: every rank refuses, nothing is written
+    write_vtx(out.with_name("bad.bp"), V, None if Q is None else np.where(Q == Q.max(), np.nan, Q),
+              times)
+except lo.errors.InputError:
+    refused = 1
+refused = comm.allreduce(refused, op=MPI.MIN)
 
 n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
 cols = [states_to_function(V, None if Q is None else Q[:, k], rec.state_map).x.array[:n_owned]
@@ -36,7 +43,9 @@ back = gather_states(V, np.column_stack(cols), rec.state_map)
 
 if comm.rank == 0:
     data = {"Q": Q, "back": back, "t": times,
-            "index_steps": (bp / "md.idx").stat().st_size // 64 - 1}
+            "index_steps": (bp / "md.idx").stat().st_size // 64 - 1,
+            "refused": refused, "bad_written": out.with_name("bad.bp").exists()
+            or any(p.name.endswith(".tmp") for p in out.parent.iterdir())}
     try:
         import adios2
     except ImportError:
