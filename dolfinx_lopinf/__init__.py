@@ -39,6 +39,9 @@ _LAZY = {
     "point_output_matrix": "fom",
     "galerkin_rom": "intrusive",
     "SnapshotRecorder": "recorder",
+    "write_vtx": "vtx",
+    "states_to_function": "vtx",
+    "state_rows": "vtx",
 }
 
 

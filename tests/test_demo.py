@@ -68,11 +68,17 @@ def test_existing_code_demo_quick(tmp_path):
                            "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "metrics.json").read_text())
-    row = m["roms"][0]
-    assert row["test_output_error"] < 1e-2
-    assert row["min_eig_K"] > 0 and row["min_eig_C"] > 0
-    rom, _ = __import__("dolfinx_lopinf").load_rom(tmp_path / "cantilever_rom.npz")
-    assert rom.scheme == "newmark" and rom.B.shape == (row["r"], 1)
+    rows = {(x["method"], x["r"]): x for x in m["roms"]}
+    for r in (2, 4):
+        auto, fd = rows[("lopinf", r)], rows[("lopinf_fd", r)]
+        # the loop is Newmark: lo.fit(scheme="auto") must find its relation, and that beats
+        # finite differences on the unseen load (1.6e-3 vs 2.0e-3 measured on this mesh)
+        assert auto["scheme"] == "newmark", auto["scheme_errors"]
+        assert auto["test_output_error"] < min(5e-3, fd["test_output_error"])
+        assert auto["min_eig_K"] > 0 and auto["min_eig_C"] > 0
+    model = __import__("dolfinx_lopinf").ReducedModel.load(tmp_path / "cantilever_rom.npz")
+    assert model.scheme == "newmark" and model.rom.scheme == "newmark"
+    assert model.rom.B.shape == (m["saved_rom_r"], 1) and model.basis.n == m["n_dofs"]
     assert (tmp_path / "tip_displacement.png").stat().st_size > 10_000
 
 
