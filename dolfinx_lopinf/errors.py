@@ -61,3 +61,16 @@ class NonLagrangianWarning(LOpInfWarning, RuntimeWarning):
 class InputCorrectedWarning(LOpInfWarning):
     """An input was made consistent rather than refused (e.g. an initial state moved onto its
     Dirichlet conditions); the message says what changed and by how much."""
+
+
+def warn(message: str, category: type[Warning]) -> None:
+    """``warnings.warn`` attributed to the first caller outside this package (the user's line),
+    however deep inside the package the warning arises."""
+    import os
+    import sys
+    import warnings
+
+    if sys.version_info >= (3, 12):
+        warnings.warn(message, category, skip_file_prefixes=(os.path.dirname(__file__),))
+    else:  # pragma: no cover - Python < 3.12 (DOLFINx from conda/apt): the nearest frame
+        warnings.warn(message, category, stacklevel=2)

@@ -44,7 +44,8 @@ import scipy.linalg
 
 from . import lsq
 from ._checks import check_matrix
-from .errors import IllConditionedDataWarning, InputError, RankDeficientDataError, SolverWarning
+from .errors import (IllConditionedDataWarning, InputError, RankDeficientDataError, SolverWarning,
+                     warn)
 
 
 @functools.lru_cache(maxsize=1)
@@ -240,10 +241,9 @@ def _compress(rows, target, names, ridge, strict, what):
         if strict:
             raise RankDeficientDataError(msg + "; lower r, record a richer trajectory or drop a "
                                          "block (or call without strict=True to regularise)")
-        warnings.warn(msg + f"; they were fixed by the ridge {ridge:g} * sigma_1 (Tikhonov, "
-                      "towards zero) with the constraints kept. Pass strict=True to raise "
-                      "instead, or lower r for a fit the data determine alone.",
-                      IllConditionedDataWarning, stacklevel=4)
+        warn(msg + f"; they were fixed by the ridge {ridge:g} * sigma_1 (Tikhonov, towards zero)"
+             " with the constraints kept. Pass strict=True to raise instead, or lower r for a fit "
+             "the data determine alone.", IllConditionedDataWarning)
     L = scale[:, None] * R_aug[:, :p].T
     return L, R_aug[:, p:].T, cond, rank, (gamma * scale if gamma > 0 else None)
 
