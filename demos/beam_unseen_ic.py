@@ -1,0 +1,130 @@
+"""Euler-Bernoulli beam, unseen initial conditions: one ROM from several trajectories.
+
+    python demos/beam_unseen_ic.py [--quick] [--out DIR]
+
+The paper's second beam experiment (METHOD.md section 6): initial deflections
+w(x, 0) = 0.001 (a x^5 - 2 l x^4 + (10a/3 - 4) l^2 x^3 + (6 - 10a/3 - a) l^4 x), at rest.
+
+1. FOM (midpoint VI, dt = 1e-5 s): four training trajectories a = 0.2, 0.3, 0.4, 0.5 to
+   t = 0.03 s, two test trajectories a = 0.1 and 0.6 to t = 0.18 s.
+2. ``lo.fit([four Snapshots], r)``: the block-diagonal POD of all training states (w, theta),
+   the data relation formed per trajectory and stacked, L-OpInf (Kh SPD). Two data relations:
+   ``scheme="auto"`` (it chooses the scheme's own three-point relation) and
+   ``scheme="continuous"`` (8th-order differences, the paper's method). Beside them the
+   intrusive Galerkin ROM in the same basis.
+3. Each ROM is run from the test trajectories' initial states (projected) to 0.18 s with the
+   midpoint rule; errors are relative state errors over both test trajectories together.
+
+Writes DIR/metrics.json and DIR/error_vs_r.png. ``--quick``: shorter runs, r in {4, 8}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf import render
+from dolfinx_lopinf._dolfinx import MPI
+from dolfinx_lopinf.scenes import beam as scene
+
+TRAIN_A, TEST_A = (0.2, 0.3, 0.4, 0.5), (0.1, 0.6)
+FULL = dict(t_train=scene.T_TRAIN, t_test=scene.T_END, r_values=list(range(4, 21, 2)))
+QUICK = dict(t_train=0.01, t_test=0.03, r_values=[4, 8])
+PAPER_2R20 = {"lopinf": 0.0223, "intrusive": 0.0401}  # METHOD.md / issue 14
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="short runs, r in {4, 8}")
+    parser.add_argument("--out", default="results/beam_unseen_ic")
+    args = parser.parse_args(argv)
+    cfg = QUICK if args.quick else FULL
+    comm = MPI.COMM_WORLD
+    out = Path(args.out)
+    beam = scene.build(200, comm)
+    dt = scene.DT
+
+    def fom(a, t_end):
+        q0, v0 = beam.initial_state(a)
+        snaps, info = lo.run(beam.system, q0, v0, dt, t_end, state_map=beam.state_map,
+                             progress=False, energy_every=0)
+        return snaps, info["seconds"]
+
+    t0 = time.perf_counter()
+    train = [fom(a, cfg["t_train"])[0] for a in TRAIN_A]
+    tests = [fom(a, cfg["t_test"]) for a in TEST_A]
+    fom_seconds = time.perf_counter() - t0
+    root = comm.rank == 0
+    rows = []
+    for r in cfg["r_values"]:
+        basis = comm.bcast(lo.pod(np.hstack([s.Q for s in train]), r, blocks=train[0].blocks)
+                           if root else None)
+        galerkin = lo.galerkin_rom(beam.system, basis.V, beam.state_map)
+        if root:
+            rows += _fit_and_score(train, [s for s, _ in tests], basis, galerkin, dt)
+    if not root:
+        return None
+    metrics = {"scene": "beam_unseen_ic", "n_dofs": int(train[0].n_states), "dt": dt,
+               "train_a": list(TRAIN_A), "test_a": list(TEST_A), "t_train": cfg["t_train"],
+               "t_end": cfg["t_test"], "quick": bool(args.quick), "fom_seconds": fom_seconds,
+               "fom_test_seconds": sum(s for _, s in tests), "paper_2r20": PAPER_2R20,
+               "roms": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    lo.io_atomic.atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=1))
+    render.error_vs_r(out / "error_vs_r.png", rows,
+                      title="beam, unseen ICs a = 0.1, 0.6 (block POD of a = 0.2-0.5)")
+    print(f"{'method':>10} {'r':>3} {'scheme':>10} {'train':>9} {'test<=t_tr':>10} {'proj':>9} "
+          f"{'test<=t_end':>11} {'proj':>9}")
+    for x in rows:
+        print(f"{x['method']:>10} {x['r']:>3} {x.get('scheme', '-'):>10} {x['train_error']:9.2e} "
+              f"{x['test_error_train_window']:10.2e} {x['projection_error_test_train_window']:9.2e} "
+              f"{x['test_error']:11.2e} {x['projection_error_test']:9.2e}")
+    return metrics
+
+
+def _fit_and_score(train, tests, basis, galerkin, dt):
+    """L-OpInf (auto and finite differences) and the intrusive ROM in ``basis``, scored on the
+    test trajectories from their projected initial states."""
+    models = {}
+    for method, scheme in (("lopinf", "auto"), ("lopinf_fd", "continuous")):
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", lo.errors.LOpInfWarning)  # rank warnings at large r
+            model = lo.fit(train, basis.r, basis=basis, scheme=scheme, damping=False)
+        models[method] = (model.rom, time.perf_counter() - t0, model.scheme)
+    models["intrusive"] = (galerkin, 0.0, "-")
+    def run(rom, trajs):
+        recon, seconds = [], 0.0
+        for s in trajs:
+            tr = rom.simulate(basis.project(s.Q[:, 0]), basis.project(s.V[:, 0]), dt, len(s.times) - 1)
+            recon.append(basis.reconstruct(tr.Qh))
+            seconds += tr.seconds
+        return np.hstack(recon), seconds
+
+    Q_test, Q_train = np.hstack([s.Q for s in tests]), np.hstack([s.Q for s in train])
+    # the test trajectories on the training time window [0, t_train] too (unseen initial
+    # conditions only, no extrapolation in time)
+    k = len(train[0].times)
+    early = np.concatenate([np.arange(i * len(s.times), i * len(s.times) + k) for i, s in enumerate(tests)])
+    rows = []
+    for method, (rom, infer_s, scheme) in models.items():
+        rec, seconds = run(rom, tests)
+        rows.append({"method": method, "r": basis.r, "scheme": scheme,
+                     "train_error": lo.relative_error(Q_train, run(rom, train)[0]),
+                     "test_error": lo.relative_error(Q_test, rec),
+                     "test_error_train_window": lo.relative_error(Q_test[:, early], rec[:, early]),
+                     "projection_error_test_train_window": basis.projection_error(Q_test[:, early]),
+                     "projection_error_test": basis.projection_error(Q_test),
+                     "infer_seconds": infer_s, "rom_seconds": seconds,
+                     "stable": bool(np.all(np.isfinite(rec)))})
+    return rows
+
+
+if __name__ == "__main__":
+    main()
