@@ -121,3 +121,17 @@ def test_stability_cantilever_is_the_demo_cantilever():
             for sim in (demo.simulate_cantilever, cantilever.simulate)]
     assert runs[0].Q.shape == runs[1].Q.shape and np.abs(runs[0].Q).max() > 0
     assert np.array_equal(runs[0].Q, runs[1].Q) and np.array_equal(runs[0].U, runs[1].U)
+
+
+def test_beam_unseen_ic_demo_quick(tmp_path):
+    """Several trajectories through lo.fit: the demo runs, every ROM is finite, and no ROM beats
+    the projection floor of its basis on the test trajectories."""
+    proc = subprocess.run([sys.executable, str(ROOT / "demos" / "beam_unseen_ic.py"), "--quick",
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["train_a"] == [0.2, 0.3, 0.4, 0.5] and m["test_a"] == [0.1, 0.6]
+    assert {x["method"] for x in m["roms"]} == {"lopinf", "lopinf_fd", "intrusive"}
+    for x in m["roms"]:
+        assert x["stable"] and x["test_error"] >= 0.5 * x["projection_error_test"]
+    assert (tmp_path / "error_vs_r.png").stat().st_size > 10_000
