@@ -27,7 +27,7 @@ import numpy as np
 
 from ._dolfinx import MPI, PETSc, dolfinx, ufl
 from .errors import InputCorrectedWarning, InputError
-from .lagrangian import LagrangianSystem, _same_dofs
+from .lagrangian import LagrangianSystem, _on_space
 
 fem = dolfinx.fem
 fpetsc = dolfinx.fem.petsc
@@ -227,8 +227,7 @@ class MidpointIntegrator:
         arrays, problem = [], None
         for target, value, name in ((sysm.q, q0, "q0"), (sysm.q_t, v0, "v0")):
             if isinstance(value, fem.Function):
-                W = value.function_space
-                if W._cpp_object is not sysm.V._cpp_object and not _same_dofs(W._cpp_object, sysm.V):
+                if not _on_space(value, sysm.V):
                     problem = problem or (f"{name} is a Function on another function space or mesh "
                                           "than the system's; interpolate it onto the space of q")
                 arr = value.x.array

@@ -38,6 +38,13 @@ def _as_function(obj, name):
     return obj
 
 
+def _on_space(f, V) -> bool:
+    """Whether the Function ``f`` lives on V: the same space object, or one with provably the
+    same dofs (:func:`_same_dofs`; this rank's verdict - the caller reduces over ranks)."""
+    W = f.function_space._cpp_object
+    return W is V._cpp_object or _same_dofs(W, V)
+
+
 def _same_dofs(W, V) -> bool:
     """Whether the (whole) space W has provably the same dofs as V: same mesh object, same
     element, identical dof maps and index maps on this rank (the caller reduces over ranks)."""

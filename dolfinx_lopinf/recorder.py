@@ -17,7 +17,7 @@ import numpy as np
 from ._dolfinx import dolfinx
 from .errors import InputError
 from .fom import StateMap, gather_states
-from .lagrangian import _same_dofs
+from .lagrangian import _on_space
 from .snapshots import Snapshots
 
 
@@ -71,7 +71,7 @@ class SnapshotRecorder:
         """(array, problem): the local dof array of a Function/array, or why it is refused."""
         if isinstance(f, dolfinx.fem.Function):
             W = f.function_space
-            if W._cpp_object is not self.V._cpp_object and not _same_dofs(W._cpp_object, self.V):
+            if not _on_space(f, self.V):
                 where = "another mesh" if W.mesh._cpp_object is not self.V.mesh._cpp_object \
                     else "another function space (element or dof layout)"
                 return None, (f"{name} is a Function on {where} than the recorder's; record "

@@ -30,7 +30,7 @@ import numpy as np
 
 from ._dolfinx import MPI, dolfinx
 from .errors import InputError
-from .lagrangian import _same_dofs
+from .lagrangian import _on_space
 
 
 class StreamingPOD:
@@ -70,8 +70,7 @@ class StreamingPOD:
         """Store one snapshot: a dolfinx Function on V or this rank's owned values."""
         problem = None
         if isinstance(q, dolfinx.fem.Function):
-            W = q.function_space
-            if W._cpp_object is not self.V._cpp_object and not _same_dofs(W._cpp_object, self.V):
+            if not _on_space(q, self.V):
                 problem = "the snapshot is a Function on another mesh or function space than V"
             q = q.x.array[: self.n_owned]
         q = np.asarray(q, dtype=float)
