@@ -126,11 +126,14 @@ class GramData:
     rank: int = -1
     ridge_weights: np.ndarray | None = None
 
+    def objective(self, theta: np.ndarray) -> float:
+        """The objective the solvers minimise: ||Theta D + ddQh||_F^2 + the ridge term."""
+        return float(np.sum((theta @ self.L + self.Z) ** 2) + self.target_norm2 - np.sum(self.Z**2))
+
     def data_objective(self, theta: np.ndarray) -> float:
         """||Theta D + ddQh||_F^2, the misfit without the ridge term."""
         ridge = 0.0 if self.ridge_weights is None else np.sum((theta * self.ridge_weights) ** 2)
-        return float(np.sum((theta @ self.L + self.Z) ** 2) + self.target_norm2
-                     - np.sum(self.Z**2) - ridge)
+        return self.objective(theta) - float(ridge)
 
 
 def _data_matrix(Qh, dQh, ddQh, U, damping):
@@ -255,14 +258,9 @@ def _split_theta(theta, r, m, has_damping):
     return K, C, B
 
 
-def _objective(gram: GramData, theta: np.ndarray) -> float:
-    """The objective the solvers minimise: data misfit + ridge term."""
-    return float(np.sum((theta @ gram.L + gram.Z) ** 2) + gram.target_norm2 - np.sum(gram.Z**2))
-
-
 def _certificate(gram, K, C, B, solver, status, seconds, eps):
     theta = np.hstack([K] + ([C] if C is not None else []) + ([-B] if B is not None else []))
-    obj = max(_objective(gram, theta), 0.0)
+    obj = max(gram.objective(theta), 0.0)
     misfit = max(gram.data_objective(theta), 0.0)
     cert = {
         "solver": solver,

@@ -190,7 +190,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     certified lower bound does not exceed Clarabel's value. (20, 1) is the case where ADMM
     needed 144 iterations to find the face."""
     from dolfinx_lopinf.benchmark import forced_data
-    from dolfinx_lopinf.inference import _objective, _solve_cvxpy, gram_data
+    from dolfinx_lopinf.inference import _solve_cvxpy, gram_data
 
     Qh, dQh, ddQh, U = forced_data(r, 3000, seed=seed)
     g = gram_data(Qh, dQh, ddQh, U)
