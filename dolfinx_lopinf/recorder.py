@@ -6,6 +6,9 @@
         recorder.record(t, u, inputs=[load(t)])     # once per step (or every k-th step)
     snaps = recorder.snapshots()                    # Snapshots on rank 0, None elsewhere
 
+If you know your loop's integrator, say so - ``SnapshotRecorder(u, scheme="newmark")`` - and
+the snapshots carry it (``snaps.scheme``) for the fit; leave it None when you do not know.
+
 Each rank stores only its owned dofs; :meth:`SnapshotRecorder.snapshots` gathers them once
 into global dof order, so the arrays are identical for any number of ranks.
 """
@@ -18,7 +21,7 @@ from ._dolfinx import dolfinx
 from .errors import InputError
 from .fom import StateMap, gather_states
 from .lagrangian import _on_space
-from .snapshots import Snapshots
+from .snapshots import Snapshots, check_scheme
 
 
 class SnapshotRecorder:
@@ -31,6 +34,10 @@ class SnapshotRecorder:
         output_matrix: optional (p, n_local) local output matrix, e.g. from
             :func:`dolfinx_lopinf.point_output_matrix`; y = sum over ranks of E u_local.
         blocks: optional name -> state rows (for block-diagonal POD).
+        scheme: the integrator of your loop, if you know it: ``"newmark"`` (average
+            acceleration, gamma = 1/2, beta = 1/4), ``"midpoint"`` (midpoint variational
+            integrator) or ``"continuous"`` (anything else); None (default) = unknown. Stored
+            as ``Snapshots.scheme``.
 
     Example:
         >>> rec = SnapshotRecorder(u)                                   # doctest: +SKIP
@@ -38,7 +45,8 @@ class SnapshotRecorder:
     """
 
     def __init__(self, u, *, state_map: StateMap | None = None, output_matrix=None,
-                 blocks: dict | None = None):
+                 blocks: dict | None = None, scheme: str | None = None):
+        self.scheme = check_scheme(scheme, "SnapshotRecorder(scheme=...)")
         V = u.function_space if isinstance(u, dolfinx.fem.Function) else u
         if not isinstance(V, dolfinx.fem.FunctionSpace):
             raise InputError("SnapshotRecorder needs a dolfinx Function or FunctionSpace, got "
@@ -169,4 +177,4 @@ class SnapshotRecorder:
         U = np.column_stack(self._inputs) if self._inputs else None
         Y = np.column_stack(self._outputs) if self._outputs else None
         return Snapshots(times=np.array(self._times), Q=Q, blocks=self.state_map.blocks, V=Vel,
-                         U=U, Y=Y)
+                         U=U, Y=Y, scheme=self.scheme)

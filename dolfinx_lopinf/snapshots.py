@@ -2,8 +2,10 @@
 
 ``Snapshots`` holds states Q (n, K) at uniform times (K,), optional velocities (n, K),
 inputs U (m, K), outputs Y (p, K) and energies (K,), with named row blocks of Q (for
-the beam: ``{"w": ..., "theta": ...}``). It is a plain numpy object: it can be saved to one
-``.npz`` and loaded where there is no DOLFINx.
+the beam: ``{"w": ..., "theta": ...}``), and optionally the name of the integrator that
+produced them (``scheme``: ``"newmark"``, ``"midpoint"`` or ``"continuous"``; None when
+unknown). It is a plain numpy object: it can be saved to one ``.npz`` and loaded where there
+is no DOLFINx.
 """
 
 from __future__ import annotations
@@ -16,6 +18,26 @@ import numpy as np
 from ._checks import as_real_array, check_blocks, check_finite, check_matrix, check_uniform_times
 from .errors import FileFormatError, InputError
 from .io_atomic import atomic_savez_compressed, open_npz
+
+#: The integrators a recording can declare (``Snapshots.scheme``); None means "unknown"
+#: (``lo.fit`` then decides from the data, ``scheme="auto"``).
+RECORDED_SCHEMES = ("newmark", "midpoint", "continuous")
+
+
+def check_scheme(scheme, name: str = "scheme") -> str | None:
+    """``scheme`` as a plain str from :data:`RECORDED_SCHEMES`, or None; an
+    :class:`~dolfinx_lopinf.errors.InputError` naming the bad value and the choices otherwise."""
+    if scheme is None:
+        return None
+    if isinstance(scheme, str) and str(scheme) in RECORDED_SCHEMES:
+        return str(scheme)
+    hint = ""
+    if isinstance(scheme, str) and scheme.strip().lower() in RECORDED_SCHEMES:
+        hint = f" (did you mean {scheme.strip().lower()!r}?)"
+    elif isinstance(scheme, str) and scheme.strip().lower() == "auto":
+        hint = " (for an integrator you do not know, pass None: lo.fit then decides from the data)"
+    raise InputError(f"{name} must be None or one of {RECORDED_SCHEMES} (the integrator that "
+                     f"produced the snapshots), got {scheme!r}{hint}")
 
 
 @dataclass(frozen=True)
@@ -32,6 +54,10 @@ class Snapshots:
         energy: (K,) FOM energy, or None.
         output_times: (K_y,) times of ``Y`` when outputs are recorded on their own grid
             (e.g. a long run that keeps only outputs); None means ``times``.
+        scheme: the integrator that produced the states, one of :data:`RECORDED_SCHEMES`
+            (``"newmark"``: average-acceleration Newmark; ``"midpoint"``: the midpoint
+            variational integrator; ``"continuous"``: any other, e.g. an adaptive or
+            generalised-alpha solver), or None when unknown.
     """
 
     times: np.ndarray
@@ -42,8 +68,10 @@ class Snapshots:
     Y: np.ndarray | None = None
     energy: np.ndarray | None = None
     output_times: np.ndarray | None = None
+    scheme: str | None = None
 
     def __post_init__(self):
+        object.__setattr__(self, "scheme", check_scheme(self.scheme))
         dt = check_uniform_times(self.times)
         times = as_real_array(self.times, "times")
         object.__setattr__(self, "times", times)
@@ -128,6 +156,8 @@ class Snapshots:
         arrays = {k: v for k, v in self.__dict__.items()
                   if isinstance(v, np.ndarray) and not k.startswith("_")}
         arrays.update({f"block__{k}": v for k, v in self.blocks.items()})
+        if self.scheme is not None:
+            arrays["scheme"] = np.array(self.scheme)  # 0-d unicode: loads without pickle
         return atomic_savez_compressed(path, **arrays)
 
     @classmethod
@@ -136,7 +166,7 @@ class Snapshots:
         :class:`~dolfinx_lopinf.errors.FileFormatError` naming the file when it is not such
         a file (another format, truncated, missing or unknown entries), and
         ``FileNotFoundError`` when it does not exist."""
-        fields = {"times", "Q", "V", "U", "Y", "energy", "output_times"}
+        fields = {"times", "Q", "V", "U", "Y", "energy", "output_times", "scheme"}
         with open_npz(path, "snapshots (Snapshots.save)") as (data, read):
             names = [k for k in data.files if not k.startswith("block__")]
             missing = [k for k in ("times", "Q") if k not in names]
@@ -149,6 +179,12 @@ class Snapshots:
                 raise FileFormatError(f"{path}: unknown entries {unknown}; not a file written "
                                       "by Snapshots.save (a ROM? use load_rom)")
             kw = {k: read(k) for k in names}
+            if "scheme" in kw:  # absent in files written before the field existed: None
+                value = kw["scheme"]
+                if value.ndim != 0 or value.dtype.kind != "U":
+                    raise FileFormatError(f"{path}: entry 'scheme' must be one text value, got "
+                                          f"dtype {value.dtype} shape {value.shape}")
+                kw["scheme"] = str(value[()])
             kw["blocks"] = {k[7:]: read(k) for k in data.files if k.startswith("block__")}
         try:
             return cls(**kw)
