@@ -171,20 +171,20 @@ def _relation(scheme, Qh, times, U):
     return Qbar, D1, D2, Ubar
 
 
-def _fit_relation(scheme, pieces, damping, eps, ridge, strict):
+def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity"):
     """L-OpInf on the stacked relation data of several trajectories."""
     data = [_relation(scheme, *p) for p in pieces]
     Q, dQ, ddQ = (np.hstack([d[i] for d in data]) for i in range(3))
     U = None if data[0][3] is None else np.hstack([d[3] for d in data])
     return infer_mechanical(Q, dQ if damping else None, ddQ, U, damping=damping, eps=eps,
-                            ridge=ridge, strict=strict)
+                            ridge=ridge, strict=strict, mass=mass)
 
 
 def _recurrence_error(ops, Qh, U, dt):
     """Relative error of the Newmark three-point recurrence of ``ops`` over Qh (r, K), started
     from its first two columns (the prediction the ROM's scheme makes)."""
     r, K = Qh.shape
-    I = np.eye(r)
+    I = np.eye(r) if ops.M is None else ops.M
     C = np.zeros((r, r)) if ops.C is None else ops.C
     Ap = I / dt**2 + C / (2 * dt) + ops.K / 4
     A0 = 2 * I / dt**2 - ops.K / 2
@@ -222,17 +222,22 @@ def _choose_scheme(pieces, damping, eps, ridge, holdout, dt):
     return errors
 
 
-def fit(snapshots, r: int, *, scheme: str = "auto", damping: bool = True,
-        basis: Basis | None = None, eps: float = 1e-8, ridge: float = RIDGE,
-        strict: bool = False, holdout: float = 0.25) -> ReducedModel:
+def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
+        mass: str = "learned", basis: Basis | None = None, eps: float = 1e-8,
+        ridge: float = RIDGE, strict: bool = False, holdout: float = 0.25) -> ReducedModel:
     """Fit an L-OpInf reduced model to one or several recorded trajectories.
 
     Args:
         snapshots: a :class:`~dolfinx_lopinf.Snapshots` or a list of them (trajectories with
             different initial conditions or input histories, same system and dt).
         r: reduced dimension (ignored when ``basis`` is given: its r is used).
-        scheme: ``"auto"``, ``"newmark"``, ``"midpoint"`` or ``"continuous"`` (module docstring).
+        scheme: ``"auto"``, ``"newmark"``, ``"midpoint"`` or ``"continuous"`` (module
+            docstring); None: the scheme the snapshots were recorded with
+            (``SnapshotRecorder(u, scheme=...)``), else ``"auto"``.
         damping: fit Ch >= eps I (False: conservative, no Ch).
+        mass: ``"learned"`` (Mh fitted too, SPD, :mod:`dolfinx_lopinf.mass`: right in any
+            basis, the black-box default) or ``"identity"`` (Mh = I: right only in a
+            mass-orthonormal basis; faster). The scheme is chosen with Mh = I either way.
         basis: a :class:`~dolfinx_lopinf.basis.Basis` to use; default the POD of all
             trajectories' states (block-diagonal when the snapshots name blocks).
         eps, ridge, strict: as in :func:`~dolfinx_lopinf.infer_mechanical`.
@@ -248,11 +253,19 @@ def fit(snapshots, r: int, *, scheme: str = "auto", damping: bool = True,
         >>> model.scheme in ("newmark", "continuous")
         True
     """
+    if mass not in ("learned", "identity"):
+        raise InputError(f"mass must be 'learned' or 'identity', got {mass!r}")
+    trajs = _trajectories(snapshots)
+    if scheme is None:
+        recorded = {getattr(s, "scheme", None) for s in trajs}
+        if len(recorded) > 1:
+            raise InputError(f"the trajectories were recorded with different schemes {sorted(map(str, recorded))}"
+                             "; pass scheme= explicitly")
+        scheme = recorded.pop() or "auto"
     if scheme not in SCHEMES:
         raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
     if not (isinstance(holdout, float) and 0.05 <= holdout <= 0.5):
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
-    trajs = _trajectories(snapshots)
     dt = trajs[0].dt
     if basis is None:
         Q_all = np.hstack([s.Q for s in trajs])
@@ -280,13 +293,13 @@ def fit(snapshots, r: int, *, scheme: str = "auto", damping: bool = True,
                 "scheme='auto'", SchemeMismatchWarning,
                 stacklevel=2)
     ops = _fit_relation("newmark" if chosen == "midpoint" else chosen, pieces, damping, eps,
-                        ridge, strict)
+                        ridge, strict, mass)
     E = None
     if trajs[0].Y is not None:
         E = infer_output(np.hstack([p[0] for p in pieces]), np.hstack([s.Y for s in trajs]))
-    report.update(scheme=chosen, certificate={k: v for k, v in ops.certificate.items()
+    report.update(scheme=chosen, mass=mass, certificate={k: v for k, v in ops.certificate.items()
                                               if isinstance(v, (int, float, str, bool))})
-    rom = LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=E,
+    rom = LagrangianROM(K=ops.K, M=ops.M, C=ops.C, B=ops.B, E=E,
                         scheme="midpoint" if chosen == "midpoint" else "newmark",
                         meta={"method": "lopinf", "fit_scheme": chosen})
     return ReducedModel(rom, basis, chosen, dt, report)

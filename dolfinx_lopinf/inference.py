@@ -73,6 +73,7 @@ class MechanicalOperators:
 
     Attributes:
         K: (r, r) stiffness.  C: (r, r) damping or None.  B: (r, m) input or None.
+        M: (r, r) learned reduced mass (``mass="learned"``), None when it is fixed to I.
         certificate: how the solve went: ``solver``, ``status``, ``objective`` (the squared
             residual norm ||ddQh + K Qh + C dQh - B U||_F^2), ``relative_residual``,
             ``min_eig_K``/``min_eig_C``, ``symmetry_error``, ``seconds``.
@@ -82,6 +83,7 @@ class MechanicalOperators:
     C: np.ndarray | None = None
     B: np.ndarray | None = None
     certificate: dict = field(default_factory=dict)
+    M: np.ndarray | None = None
 
 
 #: Relative Tikhonov parameter of every fit (see :func:`gram_data`): directions of the
@@ -284,8 +286,9 @@ def _certificate(gram, K, C, B, solver, status, seconds, eps):
 @_serial_blas
 def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool = True,
                      solver: str = "auto", ridge: float = RIDGE,
-                     strict: bool = False) -> MechanicalOperators:
-    """L-OpInf for qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I.
+                     strict: bool = False, mass: str = "identity") -> MechanicalOperators:
+    """L-OpInf for Mh qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I and
+    Mh = I (``mass="identity"``) or learned too (``mass="learned"``, :mod:`dolfinx_lopinf.mass`).
 
     Args:
         Qh, dQh, ddQh: (r, K) reduced states and their first/second time derivatives on
@@ -299,6 +302,10 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             determine (see :func:`gram_data`); 0 turns it off.
         strict: raise :class:`~dolfinx_lopinf.errors.RankDeficientDataError` when the data
             do not determine every operator entry, instead of warning and regularising.
+        mass: ``"identity"`` (Mh = I: right in a mass-orthonormal basis) or ``"learned"``
+            (Mh symmetric positive definite, fitted with the others by a convex problem
+            whose answer does not depend on the coordinates of the reduced space - use it
+            in a Euclidean, black-box basis).
 
     Returns:
         :class:`MechanicalOperators` with a certificate; warns if the solver did not reach
@@ -316,7 +323,17 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise ValueError(f"unknown solver {solver!r}; choose 'auto', 'lyapunov', 'admm' or 'cvxpy'")
     if not (np.isfinite(eps) and eps >= 0):
         raise ValueError(f"eps must be a finite number >= 0, got {eps}")
+    if mass not in ("identity", "learned"):
+        raise InputError(f"mass must be 'identity' or 'learned', got {mass!r}")
     (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
+    if mass == "learned":
+        if solver not in ("auto", "cvxpy"):
+            raise InputError(f"mass='learned' is solved by Clarabel (solver 'auto'), not {solver!r}")
+        from .mass import infer_with_mass
+
+        ops = infer_with_mass(Qh, dQh if damping else None, ddQh, U, damping=damping, eps=eps,
+                              ridge=ridge, strict=strict)
+        return _unscaled(ops, c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
     if solver == "lyapunov" and not conservative:
@@ -361,7 +378,7 @@ def _unscaled(ops: MechanicalOperators, c_state: float, c_input: float) -> Mecha
             if key in cert:
                 cert[key] = float(np.float64(cert[key]) * c_state * c_state)
     B = None if ops.B is None else ops.B * (c_state / c_input)
-    return MechanicalOperators(ops.K, ops.C, B, cert)
+    return MechanicalOperators(ops.K, ops.C, B, cert, M=ops.M)
 
 
 def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:

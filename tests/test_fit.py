@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.linalg
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.fit import SchemeMismatchWarning
@@ -46,7 +47,7 @@ def test_auto_finds_newmark_and_recovers_the_discrete_operators():
     K, C, B = _system()
     dt = 0.02  # dt * omega_max = 0.4: finite differences are biased, the Newmark relation exact
     snaps = _newmark(K, C, B, dt, 1500, np.array([1.0, 0, 0, 0]), _load)
-    model = lo.fit(snaps, 4)
+    model = lo.fit(snaps, 4, mass="identity")  # the data's mass is I: the operators themselves
     assert model.scheme == "newmark", model.report
     assert model.report["scheme_errors"]["continuous"] > 10 * model.report["scheme_errors"]["newmark"]
     # the basis is a rotation of the coordinates: compare the operators in them
@@ -68,7 +69,8 @@ def test_continuous_data_continuous_relation_and_auto():
     Q = np.cos(w[:, None] * t) * np.array([1.0, 0.5, 0.25])[:, None]
     with pytest.warns(SchemeMismatchWarning):  # the Newmark relation predicts better at dt
         cont = lo.fit(lo.Snapshots(t, Q), 3, damping=False, scheme="continuous")
-    assert np.allclose(np.sort(np.linalg.eigvalsh(cont.rom.K)), w**2, rtol=1e-6)
+    # learned mass: the frequencies are the generalised eigenvalues of (Kh, Mh)
+    assert np.allclose(scipy.linalg.eigvalsh(cont.rom.K, cont.rom.mass), w**2, rtol=1e-6)
     auto = lo.fit(lo.Snapshots(t, Q), 3, damping=False)
     errors = auto.report["scheme_errors"]
     assert errors[auto.scheme] == min(errors.values())
@@ -81,7 +83,10 @@ def test_several_trajectories_are_stacked_per_trajectory():
                                                               np.array([0, 0.3, 0.5, 0.1]))]
     model = lo.fit(trajs, 4)
     assert model.report["trajectories"] == 2 and model.scheme == "newmark"
-    assert np.allclose(_in_state(model, model.rom.K), K, rtol=0, atol=1e-6 * np.abs(K).max())
+    # learned mass: the modal masses are not determined by the data, Mh^-1 Kh and Mh^-1 Ch are
+    for fitted, true in ((model.rom.K, K), (model.rom.C, C)):
+        got = _in_state(model, np.linalg.solve(model.rom.mass, fitted))
+        assert np.allclose(got, true, rtol=0, atol=1e-6 * np.abs(K).max())
     # a full-state initial condition is projected
     tr = model.predict(t_end=1.0, q0=trajs[1].Q[:, 0], inputs=_load)
     assert lo.relative_error(trajs[1].Q[:, :51], model.reconstruct(tr.Qh)) < 1e-6
