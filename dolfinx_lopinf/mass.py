@@ -56,9 +56,20 @@ def _norm(A):
     return float(np.linalg.norm(A))
 
 
+#: Solves in the coordinates of the previous solve's mass (module docstring).
+REFINEMENTS = 3
+
+
 def infer_with_mass(Qh, dQh, ddQh, U=None, *, damping: bool = True, eps: float = 1e-8,
                     ridge: float, strict: bool = False):
     """Fit (M, K, C, B) of M qh_tt + C qh_t + K qh = B u (module docstring).
+
+    Refinement: Clarabel's accuracy depends on the coordinates (measured: frequencies of an
+    exactly Newmark system with a mass spanning three decades 0.5 % off, 8 % after a change
+    of coordinates). The problem being coordinate-invariant, it is solved again in
+    q~ = S q, S = M^{1/2} of the previous answer, where the mass is ~I, up to
+    ``REFINEMENTS`` times; the answer with the smallest scale-free misfit
+    tr(R^T M^-1 R) / tr(M W) over the data is kept.
 
     Args:
         Qh, dQh, ddQh, U: (r, K) states and derivative data of one relation (and (m, K)
@@ -69,6 +80,50 @@ def infer_with_mass(Qh, dQh, ddQh, U=None, *, damping: bool = True, eps: float =
     Returns:
         :class:`~dolfinx_lopinf.inference.MechanicalOperators` with ``M`` set.
     """
+    from .inference import MechanicalOperators
+
+    t0 = time.perf_counter()
+    Qh = check_matrix(Qh, "Qh")
+    r = Qh.shape[0]
+    W = Qh @ Qh.T / np.sum(Qh**2)
+
+    def score(ops):
+        R = ops.M @ ddQh + ops.K @ Qh - (0.0 if ops.B is None else ops.B @ U)
+        if ops.C is not None:
+            R = R + ops.C @ dQh
+        return float(np.sum(R * scipy.linalg.solve(ops.M, R, assume_a="pos")) / np.sum(ops.M * W))
+
+    S = np.eye(r)
+    best, history = None, []
+    for it in range(REFINEMENTS):
+        with warnings.catch_warnings():
+            if it:
+                warnings.simplefilter("ignore")
+            t = _fit_once(S @ Qh, None if dQh is None else S @ dQh, S @ ddQh, U,
+                          damping=damping, eps=eps, ridge=ridge, strict=strict)
+        ops = MechanicalOperators(S @ t.K @ S, None if t.C is None else S @ t.C @ S,
+                                  None if t.B is None else S @ t.B, t.certificate, M=S @ t.M @ S)
+        history.append(score(ops))
+        if best is None or history[-1] < best[0]:
+            best = (history[-1], ops)
+        w, Q = np.linalg.eigh(ops.M)
+        S = (Q * np.sqrt(np.maximum(w, 1e-300))) @ Q.T
+    ops = best[1]
+    c = np.sum(ops.M * W)  # normalise tr(M W) = 1 in the user's coordinates
+    cert = dict(ops.certificate, misfit_per_refinement=history, seconds=time.perf_counter() - t0)
+    cert.update(min_eig_M=float(np.linalg.eigvalsh(ops.M / c).min()),
+                max_eig_M=float(np.linalg.eigvalsh(ops.M / c).max()),
+                min_eig_K=float(np.linalg.eigvalsh(ops.K / c).min()))
+    if ops.C is not None:
+        cert["min_eig_C"] = float(np.linalg.eigvalsh(ops.C / c).min())
+    sym = lambda A: None if A is None else 0.5 * (A + A.T)  # noqa: E731
+    return MechanicalOperators(sym(ops.K) / c, sym(ops.C) / c if ops.C is not None else None,
+                               None if ops.B is None else ops.B / c, cert, M=sym(ops.M) / c)
+
+
+def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
+    """One Clarabel solve of the learned-mass problem in the given coordinates, K, C, B
+    re-solved exactly for its M, and the M = I candidate."""
     from .inference import MechanicalOperators, _compress, _block_names
 
     try:
