@@ -1,0 +1,136 @@
+"""demos/own_loop.py in quick mode: a tutorial-style dolfinx cantilever (Q2 hexahedra,
+LinearProblem + MUMPS, UFL-expression updates, a body force) with two integrators, recorded
+by SnapshotRecorder and fitted by lo.fit(scheme=auto/newmark/continuous).
+
+Measured on the quick mesh (459 dofs, numbers at commit time; the margins below are >= 3x):
+
+* Newmark loop, mass-orthonormal POD (reduced mass exactly I, as L-OpInf assumes): auto
+  picks "newmark" at every r (held-back error 9.5e-6 vs 5.8e-4 at r = 4), and the unseen-load
+  tip error is 2.0e-3 / 4.5e-5 / 9.8e-7 at r = 2 / 4 / 8 (finite differences: ~4e-3).
+* Newmark loop, Euclidean POD (the black-box default): the M_h = I model-form error
+  (~9e-3 on the held-back window) swamps the difference between the relations, and auto
+  picks "continuous" (1.3e-2 unseen vs 1.0e-2 for "newmark"): a known limitation, xfail.
+* Generalised-alpha loop: it obeys neither relation; its best held-back error is ~600x the
+  Newmark loop's.
+"""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dolfinx_lopinf._dolfinx")
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "demos" / "own_loop.py"
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory):
+    out = tmp_path_factory.mktemp("own_loop")
+    proc = subprocess.run([sys.executable, str(DEMO), "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out, json.loads((out / "metrics.json").read_text())
+
+
+def _rows(metrics, integrator, basis):
+    """(requested scheme, r) -> row."""
+    return {(x["requested"], x["r"]): x for x in metrics["loops"][integrator]["roms"]
+            if x["basis"] == basis}
+
+
+@pytest.mark.slow
+def test_outputs_written(quick):
+    out, m = quick
+    assert m["scene"] == "own_loop_cantilever" and set(m["loops"]) == {"newmark", "gen-alpha"}
+    for integrator, loop in m["loops"].items():
+        assert loop["n_dofs"] == 459 and loop["fom_seconds"] > 0
+        # the body force moves the tip visibly, and the unseen load differs from training
+        assert 1e-3 < loop["max_abs_tip_test"] < 0.05 and 1e-3 < loop["max_abs_tip_train"] < 0.05
+        assert {(x["basis"], x["requested"], x["r"]) for x in loop["roms"]} == {
+            (b, s, r) for b in ("euclidean", "mass-orthonormal")
+            for s in ("auto", "newmark", "continuous") for r in (2, 4, 8)}
+        png = out / f"tip_{integrator}.png"
+        assert png.stat().st_size > 10_000 and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        for split in ("train", "test"):
+            assert (out / f"{split}_{integrator}.npz").exists()
+
+
+@pytest.mark.slow
+def test_every_rom_is_stable_and_close(quick):
+    _, m = quick
+    for loop in m["loops"].values():
+        for x in loop["roms"]:
+            assert x["stable"], x
+            assert x["test_tip_error"] < 4e-2, x  # measured <= 1.3e-2 on every row
+
+
+@pytest.mark.slow
+def test_newmark_loop_auto_finds_newmark_in_mass_orthonormal_basis(quick):
+    _, m = quick
+    rows = _rows(m, "newmark", "mass-orthonormal")
+    for r in (2, 4, 8):
+        auto, nm, fd = rows[("auto", r)], rows[("newmark", r)], rows[("continuous", r)]
+        assert auto["scheme"] == "newmark", auto["scheme_errors"]
+        assert auto["test_tip_error"] <= 1.5 * min(nm["test_tip_error"], fd["test_tip_error"])
+        if r >= 4:  # the loop obeys the three-point relation: measured 62x and 1100x
+            errors = auto["scheme_errors"]
+            assert errors["continuous"] > 10 * errors["newmark"], errors
+    assert rows[("auto", 2)]["test_tip_error"] < 8e-3    # measured 2.0e-3
+    assert rows[("auto", 4)]["test_tip_error"] < 5e-4    # measured 4.5e-5 (target 5e-3)
+    assert rows[("auto", 8)]["test_tip_error"] < 5e-5    # measured 9.8e-7
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason=(
+    "Euclidean POD: lo.fit chooses the scheme with the reduced mass fixed to I, whose "
+    "model-form error (~9e-3 held back) swamps the relations' difference; measured auto -> "
+    "'continuous', unseen 1.3e-2 vs 1.0e-2 for 'newmark' at r = 4"))
+def test_newmark_loop_auto_finds_newmark_in_euclidean_basis(quick):
+    _, m = quick
+    rows = _rows(m, "newmark", "euclidean")
+    auto, nm, fd = rows[("auto", 4)], rows[("newmark", 4)], rows[("continuous", 4)]
+    assert auto["scheme"] == "newmark", auto["scheme_errors"]
+    assert auto["test_tip_error"] <= 1.5 * min(nm["test_tip_error"], fd["test_tip_error"])
+    assert auto["test_tip_error"] < 5e-3
+
+
+@pytest.mark.slow
+def test_generalised_alpha_obeys_neither_relation(quick):
+    _, m = quick
+    nm_loop = _rows(m, "newmark", "mass-orthonormal")[("auto", 4)]["scheme_errors"]
+    ga_loop = _rows(m, "gen-alpha", "mass-orthonormal")[("auto", 4)]["scheme_errors"]
+    # measured: 5.6e-3 (best relation on the gen-alpha data) vs 9.5e-6
+    assert min(ga_loop.values()) > 30 * nm_loop["newmark"], (ga_loop, nm_loop)
+
+
+def _mpiexec():
+    exe = Path(sys.executable).with_name("mpiexec")
+    return str(exe) if exe.exists() else shutil.which("mpiexec")
+
+
+@pytest.mark.mpi
+def test_two_ranks_give_the_serial_figures(quick, tmp_path):
+    """The recorder gathers to rank 0: the Newmark loop under mpiexec -n 2 reports the
+    serial errors and choices."""
+    mpiexec = _mpiexec()
+    if mpiexec is None:
+        pytest.skip("no mpiexec")
+    proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(DEMO), "--quick",
+                           "--integrator", "newmark", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    par = json.loads((tmp_path / "metrics.json").read_text())
+    assert par["ranks"] == 2
+    serial = quick[1]["loops"]["newmark"]["roms"]
+    for a, b in zip(serial, par["loops"]["newmark"]["roms"]):
+        assert (a["basis"], a["requested"], a["r"], a["scheme"]) == \
+            (b["basis"], b["requested"], b["r"], b["scheme"])
+        assert b["test_tip_error"] == pytest.approx(a["test_tip_error"], rel=1e-3, abs=1e-8)
+    assert np.isclose(par["loops"]["newmark"]["max_abs_tip_test"],
+                      quick[1]["loops"]["newmark"]["max_abs_tip_test"], rtol=1e-8)
