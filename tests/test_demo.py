@@ -131,7 +131,7 @@ def test_beam_unseen_ic_demo_quick(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["train_a"] == [0.2, 0.3, 0.4, 0.5] and m["test_a"] == [0.1, 0.6]
-    assert {x["method"] for x in m["roms"]} == {"lopinf", "lopinf_fd", "intrusive"}
+    assert {x["method"] for x in m["roms"]} == {"lopinf", "lopinf_fd", "lopinf_mass_I", "intrusive"}
     for x in m["roms"]:
         assert x["stable"] and x["test_error"] >= 0.5 * x["projection_error_test"]
     assert (tmp_path / "error_vs_r.png").stat().st_size > 10_000
