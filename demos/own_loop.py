@@ -18,9 +18,10 @@ Two integrators, `--integrator`:
   four-point recurrence with numerical dissipation); the demo measures which is closer.
 
 Three lines attach the plugin (create the recorder, `record` once per step, `snapshots()`).
-Then `lo.fit(train, r, scheme=s)` for s in auto / newmark / continuous, r = 2, 4, 8, in two
-bases: the black-box default (Euclidean POD) and a mass-orthonormal POD built from the user's
-own mass form (one more line; there the reduced mass is exactly the I that L-OpInf assumes).
+Then `lo.fit(train, r, scheme=s)` for s in auto / newmark / continuous, r = 2, 4, 8, three
+ways: the black-box default (Euclidean POD, reduced mass Mh = I), the same POD with a learned
+reduced mass (``mass="learned"``), and a mass-orthonormal POD built from the user's own mass
+form (one more line; there Mh = I is exact).
 Each model predicts the tip deflection under a body-force history it has never seen.
 Writes DIR/metrics.json, DIR/tip_<integrator>.png, DIR/tip_error_<integrator>.png and the
 recorded snapshots DIR/{train,test}_<integrator>.npz (re-fit them without the FOM:
@@ -65,7 +66,7 @@ def test_load(t):
     return float(0.7 * shake + push)
 
 
-def simulate(load, t_end, dt, integrator="newmark", cells=(16, 2, 2), record=None):
+def simulate(load, t_end, dt, integrator="newmark", cells=(10, 2, 2), record=None):
     """The user's code: returns the displacement Function's space, the recorder, seconds."""
     domain = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0.0, 0.0, 0.0], [L, W, H]], list(cells),
                                      dolfinx.mesh.CellType.hexahedron)
@@ -173,6 +174,9 @@ def simulate(load, t_end, dt, integrator="newmark", cells=(16, 2, 2), record=Non
 # the plugin side: fit from the recorded arrays, predict the unseen load
 
 SCHEMES = ("auto", "newmark", "continuous")
+# (basis, reduced mass): the black-box default; the same POD with a learned Mh
+# (lo.fit(mass="learned"), opt-in); a mass-orthonormal POD from the user's mass form, Mh = I
+VARIANTS = (("euclidean", "identity"), ("euclidean", "learned"), ("mass-orthonormal", "identity"))
 
 
 def run_integrator(integrator, args, out):
@@ -199,51 +203,55 @@ def run_integrator(integrator, args, out):
     test.save(out / f"test_{integrator}.npz")
     n_test, n_train = len(test.times) - 1, len(train.times) - 1
     rows, preds = [], {}
-    for basis_name in ("euclidean", "mass-orthonormal"):
+    for basis_name, mass_model in VARIANTS:
         for r in args.r:
             basis = None if basis_name == "euclidean" else lo.pod(train.Q, r, weight=mass)
             for scheme in SCHEMES:
                 t0 = time.perf_counter()
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", lo.errors.LOpInfWarning)  # in the rows
-                    model = lo.fit(train, r, scheme=scheme, basis=basis)
+                    model = lo.fit(train, r, scheme=scheme, basis=basis,
+                                   **({"mass": "learned"} if mass_model == "learned" else {}))
                 fit_s = time.perf_counter() - t0
                 pred = model.predict(n_test, inputs=test_load)     # inputs at t_0 .. t_n
                 refit = model.predict(n_train, inputs=train_load)
                 stable = bool(np.all(np.isfinite(pred.Y)))
                 rows.append({
-                    "integrator": integrator, "basis": basis_name, "r": r, "requested": scheme,
+                    "integrator": integrator, "basis": basis_name, "mass": mass_model, "r": r,
+                    "requested": scheme,
                     "scheme": model.scheme, "scheme_errors": model.report["scheme_errors"],
                     "test_tip_error": lo.relative_error(test.Y, pred.Y) if stable else float("inf"),
                     "train_tip_error": lo.relative_error(train.Y, refit.Y),
                     "projection_error_test": model.basis.projection_error(test.Q),
                     "fit_seconds": fit_s, "rom_seconds": pred.seconds, "stable": stable})
-                preds[(basis_name, scheme, r)] = pred
+                preds[(basis_name, mass_model, scheme, r)] = pred
     r_show = 4 if 4 in args.r else args.r[-1]
-    err = {(x["basis"], x["requested"]): x for x in rows if x["r"] == r_show}
+    err = {(x["basis"], x["mass"], x["requested"]): x for x in rows if x["r"] == r_show}
     series = {"FOM (unseen load)": test.Y[0]}
-    for b, s in (("euclidean", "auto"), ("euclidean", "newmark"), ("euclidean", "continuous"),
-                 ("mass-orthonormal", "auto")):
-        x = err[(b, s)]
-        label = ("Euclidean POD" if b == "euclidean" else "mass-orth. POD") + f", {s}" \
+    for b, mm, s in (("euclidean", "identity", "auto"), ("euclidean", "identity", "newmark"),
+                     ("euclidean", "identity", "continuous"), ("euclidean", "learned", "auto"),
+                     ("mass-orthonormal", "identity", "auto")):
+        x = err[(b, mm, s)]
+        label = ("Euclidean POD" if b == "euclidean" else "mass-orth. POD") \
+            + (", learned Mh" if mm == "learned" else "") + f", {s}" \
             + (f" ({x['scheme']})" if s == "auto" else "")
-        series[f"{label}: {x['test_tip_error']:.1e}"] = preds[(b, s, r_show)].Y[0]
+        series[f"{label}: {x['test_tip_error']:.1e}"] = preds[(b, mm, s, r_show)].Y[0]
     render.curves(out / f"tip_{integrator}.png", test.times, series,
-                  ylabel="tip deflection u_z [m]",
+                  colors=["C7", "C0", "C3", "C2", "C4", "C1"], ylabel="tip deflection u_z [m]",
                   title=f"{integrator} loop, {train.n_states} dofs: unseen body force, r = {r_show}")
     fom_y = series.pop("FOM (unseen load)")
     render.curves(out / f"tip_error_{integrator}.png", test.times,
                   {k: np.abs(v - fom_y) for k, v in series.items()}, logy=True,
-                  colors=["C0", "C3", "C2", "C1"], ylabel="|ROM - FOM| tip deflection [m]",
+                  colors=["C0", "C3", "C2", "C4", "C1"], ylabel="|ROM - FOM| tip deflection [m]",
                   title=f"{integrator} loop: tip error on the unseen load, r = {r_show} "
                         f"(FOM max {np.max(np.abs(fom_y)):.1e} m)")
     print(f"[{integrator}] n = {train.n_states} dofs, FOM {fom_test_s:.1f} s for {n_test} steps "
           f"(train {fom_train_s:.1f} s for {n_train}), {comm.size} rank(s)")
-    print(f"{'basis':>6} {'r':>2} {'requested':>10} {'chose':>10} {'unseen err':>10} "
+    print(f"{'basis':>6} {'Mh':>8} {'r':>2} {'requested':>10} {'chose':>10} {'unseen err':>10} "
           f"{'train err':>9} {'proj err':>8} {'held-back nm/fd':>17} {'fit s':>5} {'ROM ms':>6}")
     for x in rows:
         se = x["scheme_errors"]
-        print(f"{x['basis'][:6]:>6} {x['r']:>2} {x['requested']:>10} {x['scheme']:>10} "
+        print(f"{x['basis'][:6]:>6} {x['mass']:>8} {x['r']:>2} {x['requested']:>10} {x['scheme']:>10} "
               f"{x['test_tip_error']:10.2e} {x['train_tip_error']:9.2e} "
               f"{x['projection_error_test']:8.1e} {se['newmark']:8.2e} {se['continuous']:8.2e} "
               f"{x['fit_seconds']:5.2f} {x['rom_seconds'] * 1e3:6.1f}")
@@ -258,7 +266,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--integrator", choices=("newmark", "gen-alpha", "both"), default="both")
-    parser.add_argument("--quick", action="store_true", help="coarse mesh, short runs (~10 s)")
+    parser.add_argument("--quick", action="store_true", help="coarse mesh, short runs (~20 s)")
     parser.add_argument("--out", default="results/own_loop")
     parser.add_argument("--r", default="2,4,8", help="reduced dimensions, comma-separated")
     args = parser.parse_args(argv)
