@@ -201,7 +201,7 @@ def _recurrence_error(ops, Qh, U, dt):
     return float(err) if np.isfinite(err) else float("inf")
 
 
-def _choose_scheme(pieces, damping, eps, ridge, holdout, dt):
+def _choose_scheme(pieces, damping, eps, ridge, holdout, dt, mass="identity"):
     """Held-back prediction error of each candidate relation (see the module docstring)."""
     fit_part, held = [], []
     for Qh, times, U in pieces:
@@ -217,7 +217,7 @@ def _choose_scheme(pieces, damping, eps, ridge, holdout, dt):
     for scheme in _CANDIDATES:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ops = _fit_relation(scheme, fit_part, damping, eps, ridge, False)
+            ops = _fit_relation(scheme, fit_part, damping, eps, ridge, False, mass)
         errors[scheme] = max(_recurrence_error(ops, Qh, U, dt) for Qh, U in held)
     return errors
 
@@ -239,7 +239,7 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
             in a Euclidean one) or ``"learned"`` (Mh fitted too, SPD, coordinate-invariant,
             :mod:`dolfinx_lopinf.mass`; measured far better in Euclidean bases - beam block
             basis r = 20 1.5e-5 vs 8e-4 - but its optimum can switch modes off, so it is
-            opt-in and warns when it does). The scheme is chosen with Mh = I either way.
+            opt-in and warns when it does). The scheme is chosen with the same mass model.
         basis: a :class:`~dolfinx_lopinf.basis.Basis` to use; default the POD of all
             trajectories' states (block-diagonal when the snapshots name blocks).
         eps, ridge, strict: as in :func:`~dolfinx_lopinf.infer_mechanical`.
@@ -277,7 +277,7 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
     pieces = [(basis.project(s.Q), s.times, s.U) for s in trajs]
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
               "dt": dt, "requested_scheme": scheme}
-    errors = _choose_scheme(pieces, damping, eps, ridge, holdout, dt)
+    errors = _choose_scheme(pieces, damping, eps, ridge, holdout, dt, mass)
     report["scheme_errors"] = errors
     best = min(errors, key=errors.get)
     if scheme == "auto":
