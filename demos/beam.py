@@ -14,6 +14,13 @@
    (V^T M V, V^T K V from our FOM), in the same basis.
 4. Every ROM is integrated with the same midpoint scheme and scored: state error on the
    training and test windows, FOM energy error to t = 2 s, midpoint deflection to t = 3 s.
+5. The peer, when ``opinf`` is installed (``pip install 'dolfinx_lopinf[peers]'``): opinf's
+   first-order model dx/dt = A x on x = [q; q_t] (2r states), fitted the way its tutorials
+   fit it (``dolfinx_lopinf.peers``): its own POD of the scaled [q; q_t] (its randomized
+   SVD, seeded) in the Euclidean rows, the row's mass-orthonormal basis for q and q_t in the
+   others; its 6th-order differences; its regulariser search. Integrated exactly (matrix
+   exponential) and scored with the same metrics: rows ``opinf_peer`` under ``peer_roms`` in
+   metrics.json, peer_error_vs_r.png, peer_energy_error.png.
 
 Writes DIR/metrics.json and DIR/*.png. ``--quick`` shortens windows and the r sweep.
 """
@@ -29,7 +36,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import render
+from dolfinx_lopinf import peers, render
 from dolfinx_lopinf._dolfinx import MPI
 from dolfinx_lopinf.fom import output_matrix_in_state
 from dolfinx_lopinf.intrusive import dense_state_matrix
@@ -77,7 +84,20 @@ def main(argv=None):
     r_max = max(cfg["r_values"])
     bases = comm.bcast({"euclidean-block": lo.pod(train.Q, r_max, blocks=train.blocks),
                         "mass-orthonormal": lo.pod(train.Q, r_max, weight=mass)} if root else None)
-    rows, traj_plot = [], {}
+    # the opinf peer (optional): its FOM energy needs the stiffness matrix too
+    with_peer = peers.have_opinf()
+    stiffness = dense_state_matrix(beam.system.stiffness_form, beam.system.V, beam.state_map) \
+        if with_peer else None
+    peer_seconds, peer_pod = 0.0, {}
+    if root and not with_peer:
+        print(f"opinf not installed: {peers.INSTALL_HINT} (the opinf_peer rows are skipped)")
+    elif root:  # opinf's own POD of the scaled [q; q_t], one (randomized, seeded) SVD for all r
+        t0 = time.perf_counter()
+        peer_pod = dict(zip(cfg["r_values"], peers.opinf_first_order(
+            train.Q, train.times, cfg["r_values"], velocities=train.V, basis="stacked",
+            svdsolver="randomized")))
+        peer_seconds += time.perf_counter() - t0
+    rows, peer_rows, traj_plot = [], [], {}
     for r in tqdm(cfg["r_values"], desc="ROMs", unit="r", disable=not root):
         for basis_name, full_basis in bases.items():
             basis = full_basis.truncate(r)
@@ -85,6 +105,14 @@ def main(argv=None):
             if root:
                 new_rows, trajs = _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt)
                 rows += [dict(row, basis=basis_name) for row in new_rows]
+                if with_peer:
+                    t0 = time.perf_counter()
+                    peer = peer_pod[r] if basis_name == "euclidean-block" else peers.opinf_first_order(
+                        train.Q, train.times, r, velocities=train.V, basis=basis)
+                    row, trajs["opinf_peer"] = _score_peer(peer, train, test, snaps, cfg, dt, mass,
+                                                           stiffness)
+                    peer_rows.append(dict(row, basis=basis_name))
+                    peer_seconds += time.perf_counter() - t0
                 if r == cfg["r_plot"]:
                     traj_plot[basis_name] = trajs
     if not root:
@@ -99,10 +127,27 @@ def main(argv=None):
         "energy_error_definition": "max over t <= t_energy of |E(V qh, V vh) - E(V qh0, V vh0)| / E(V qh0, V vh0), FOM energy",
         "stable_definition": "states finite and relative FOM energy error <= 1 for t <= t_energy",
         "roms": rows,
+        # opinf's first-order model (dolfinx_lopinf.peers), scored as the rows above; empty
+        # without opinf. peer_seconds: everything the peer rows cost (fits, POD, runs, scores)
+        "peer_roms": peer_rows,
+        "peer": {"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
+                 "install": peers.INSTALL_HINT,
+                 "model": "ContinuousModel('A') on x = [q; q_t] (2r states), L2Solver, "
+                          "regulariser by ROM.fit_regselect_continuous over logspace(-12, 2, 15); "
+                          "ord6 finite differences; each variable scaled to max |.| = 1; "
+                          "integrated exactly (expm)",
+                 "basis": {"euclidean-block": "opinf PODBasis(2r, svdsolver='randomized') of "
+                                              "the scaled [q; q_t]",
+                           "mass-orthonormal": "the row's mass-orthonormal basis for q and q_t"}},
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
     _figures(out, cfg, snaps, beam, traj_plot, rows, E_mid, dt)
-    _summary(rows, cfg)
+    if peer_rows:
+        _peer_figures(out, cfg, traj_plot, rows, peer_rows)
+    order = list(bases)
+    _summary(sorted(rows + peer_rows, key=lambda x: (x["r"], order.index(x["basis"]))), cfg)
+    if with_peer:
+        print(f"opinf peer rows: {peer_seconds:.1f} s in all")
     return metrics
 
 
@@ -156,6 +201,37 @@ def _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt):
     return rows, trajs
 
 
+def _score_peer(peer, train, test, snaps, cfg, dt, mass, stiffness):
+    """The opinf peer scored as _fit_and_score scores the ROMs: the same windows and initial
+    state, the FOM energy of its reconstructed state (relative to that of its reconstructed
+    initial state) to t_energy and t_long, the same stability test."""
+    n_steps, n_long, every = int(round(cfg["t_end"] / dt)), int(round(cfg["t_long"] / dt)), cfg["every_long"]
+    q0, v0 = snaps.Q[:, 0], snaps.V[:, 0]
+    short = peer.predict(q0, v0, np.arange(n_steps + 1) * dt, velocities=False)
+    long = peer.predict(q0, v0, np.arange(n_long // every + 1) * (every * dt), full=False)
+    energy = peer.energy(long.Xh, mass, stiffness)
+    with np.errstate(all="ignore"):
+        energy_err = np.abs(energy - energy[0]) / abs(energy[0])
+    window = long.times <= cfg["t_energy"] + 1e-12
+    k_train = len(train.times)
+    row = {
+        "method": "opinf_peer", "r": peer.r,
+        "train_error": lo.relative_error(train.Q, short.Q[:, :k_train]),
+        "test_error": lo.relative_error(test.Q, short.Q[:, k_train - 1:]),
+        "projection_error_train": peer.projection_error(train.Q, train.V),
+        "projection_error_test": peer.projection_error(test.Q, test.V),
+        "max_energy_error": float(np.nanmax(energy_err[window])),
+        "max_energy_error_t_long": float(np.nanmax(energy_err)),
+        "infer_seconds": peer.fit_seconds,
+        "rom_seconds": short.seconds,
+        "rom_seconds_long": long.seconds,
+        "stable": lo.metrics.is_stable(long.Xh, energy_err[window]),
+        "regularizer": peer.regularizer, "reduced_states": 2 * peer.r,
+        "peer_basis": peer.basis_kind, "velocity_source": peer.velocity_source,
+    }
+    return row, (short, long, energy_err, None)
+
+
 def _fom_energy(galerkin, Qh, Vh):
     """FOM energy of reconstructed states: 1/2 vh^T (V^T M V) vh + 1/2 qh^T (V^T K V) qh."""
     return galerkin.energy(Qh, Vh)
@@ -197,6 +273,38 @@ def _figures(out, cfg, snaps, beam, traj_by_basis, rows, E_mid, dt):
     render.curves(out / "midpoint_deflection_error.png", tl, err, logy=True, vline=cfg["t_train"],
                   colors=["C0", "C3"],
                   ylabel="|w_ROM - w_FOM| / max|w_FOM|", title="midpoint deflection error")
+
+
+def _peer_figures(out, cfg, traj_by_basis, rows, peer_rows):
+    """The opinf peer beside our ROMs: test error against r, and the energy error at r_plot."""
+    def series(method, basis):
+        sel = sorted((x for x in rows + peer_rows if x["method"] == method and x["basis"] == basis),
+                     key=lambda x: x["r"])
+        return [x["r"] for x in sel], [min(x["test_error"], 1e3) for x in sel]
+
+    curves = {"L-OpInf, block POD": ("lopinf", "euclidean-block"),
+              "standard OpInf, block POD": ("opinf", "euclidean-block"),
+              "opinf peer, its POD of [q; q_t]": ("opinf_peer", "euclidean-block"),
+              "intrusive, M-orth. POD": ("intrusive", "mass-orthonormal"),
+              "L-OpInf, M-orth. POD": ("lopinf", "mass-orthonormal"),
+              "opinf peer, M-orth. POD": ("opinf_peer", "mass-orthonormal")}
+    data = {label: series(*key) for label, key in curves.items()}
+    render.curves(out / "peer_error_vs_r.png", {k: v[0] for k, v in data.items()},
+                  {k: v[1] for k, v in data.items()}, xlabel="reduced dimension r (peer: 2r states)",
+                  ylabel="relative state error, test window", logy=True,
+                  colors=["C0", "C3", "C6", "C2", "C9", "C8"],
+                  title="beam: opinf's first-order model (peer) beside our ROMs")
+    r = cfg["r_plot"]
+    t, e = {}, {}
+    for basis, tag in (("euclidean-block", "block POD"), ("mass-orthonormal", "M-orth. POD")):
+        for method, name in (("lopinf", "L-OpInf"), ("opinf_peer", "opinf peer")):
+            long, energy_err = traj_by_basis[basis][method][1], traj_by_basis[basis][method][2]
+            sel = long.times <= cfg["t_energy"] + 1e-12
+            label = f"{name} r={r}, {tag}"
+            t[label], e[label] = long.times[sel], energy_err[sel]
+    render.curves(out / "peer_energy_error.png", t, e, ylabel="relative FOM energy error", logy=True,
+                  vline=cfg["t_train"], colors=["C0", "C6", "C9", "C8"],
+                  title="FOM energy error of the reconstructed state: L-OpInf and the opinf peer")
 
 
 def _summary(rows, cfg):

@@ -14,7 +14,11 @@ forced, damped L-OpInf ROM from those arrays alone,
 to the data relation of the loop's integrator, which it finds itself (``scheme="auto"``:
 here the Newmark three-point relation), and predicts the tip displacement for a load history
 it has never seen. Beside it, the same fit from 8th-order finite differences
-(``scheme="continuous"``, the path the README showed before) for comparison.
+(``scheme="continuous"``, the path the README showed before) for comparison, and - when
+``opinf`` is installed (``pip install 'dolfinx_lopinf[peers]'``) - the established peer:
+opinf's first-order model dx/dt = A x + B p(t) on x = [q; q_t] (2r states, q_t from opinf's
+own differences), fitted the way its tutorials fit it (``dolfinx_lopinf.peers``), scored on
+the same tip error (rows ``opinf_peer`` under ``peer_roms`` in metrics.json).
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ from pathlib import Path
 import numpy as np
 
 import dolfinx_lopinf as lo  # imports dolfinx_solver first when the PyPI wheel is used
-from dolfinx_lopinf import render
+from dolfinx_lopinf import peers, render
+from dolfinx_lopinf.fom import output_matrix_in_state
 
 import dolfinx  # noqa: E402  (after dolfinx_lopinf, for the PyPI wheel)
 import dolfinx.fem.petsc  # noqa: E402
@@ -142,6 +147,10 @@ def main(argv=None):
     V, rec_train, fom_train_s = simulate_cantilever(train_load, t_train, cells, factory)
     _, rec_test, fom_test_s = simulate_cantilever(test_load, t_test, cells, factory)
     train, test = rec_train.snapshots(), rec_test.snapshots()
+    # the peer (optional) needs the tip output as a matrix on the state (collective)
+    with_peer = peers.have_opinf()
+    E_state = output_matrix_in_state(V, rec_train.output_matrix, rec_train.state_map) \
+        if with_peer else None
     if comm.rank != 0:
         return None
 
@@ -174,27 +183,67 @@ def main(argv=None):
             preds[(method, r)] = pred
             if method == "lopinf" and r == r_values[-1]:
                 model.save(out / "cantilever_rom.npz")
+    # 4. the peer: opinf's first-order model from the same arrays (one POD for every r)
+    peer_rows, peer_seconds = [], 0.0
+    if not with_peer:
+        print(f"opinf not installed: {peers.INSTALL_HINT} (the opinf_peer rows are skipped)")
+    else:
+        t0 = time.perf_counter()
+        fitted = peers.opinf_first_order(train.Q, train.times, r_values, velocities=train.V,
+                                         inputs=train.U, output_matrix=E_state,
+                                         svdsolver="randomized")
+        for peer in fitted:
+            rest = np.zeros(train.n_states)  # the loop starts at rest, as the ROMs do
+            pred = peer.predict(rest, rest, test.times, test_load, full=False)
+            refit = peer.predict(rest, rest, train.times, train_load, full=False)
+            peer_rows.append({
+                "method": "opinf_peer", "r": peer.r, "scheme": "exact",
+                "train_output_error": lo.relative_error(train.Y, refit.Y),
+                "test_output_error": lo.relative_error(test.Y, pred.Y),
+                "infer_seconds": peer.fit_seconds, "solve_seconds": peer.fit_seconds,
+                "solver": "opinf L2Solver, fit_regselect_continuous", "rom_seconds": pred.seconds,
+                "speedup": fom_test_s / pred.seconds,
+                "projection_error_test": peer.projection_error(test.Q, times=test.times),
+                "stable": pred.finite, "regularizer": peer.regularizer,
+                "reduced_states": 2 * peer.r, "velocity_source": peer.velocity_source,
+                "peer_basis": peer.basis_kind})
+            preds[("opinf_peer", peer.r)] = pred
+        peer_seconds = time.perf_counter() - t0
     r_top = r_values[-1]
     best = next(x for x in rows if x["method"] == "lopinf" and x["r"] == r_top)
     metrics = {
         "scene": "existing_code_cantilever", "n_dofs": int(train.n_states), "dt": DT,
         "t_train": t_train, "t_end": t_test, "fom_seconds": fom_test_s,
         "fom_train_seconds": fom_train_s, "saved_rom_r": r_top, "roms": rows,
+        # opinf's first-order model (dolfinx_lopinf.peers), scored as the rows above; empty
+        # without opinf. peer: what it is and everything it cost (POD, fits, runs, scores)
+        "peer_roms": peer_rows,
+        "peer": {"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
+                 "install": peers.INSTALL_HINT,
+                 "model": "ContinuousModel('AB') on x = [q; q_t] (2r states), q_t = opinf ord6 "
+                          "differences of q; opinf PODBasis(2r, svdsolver='randomized') of the "
+                          "scaled [q; q_t]; L2Solver, "
+                          "regulariser by ROM.fit_regselect_continuous over logspace(-12, 2, 15); "
+                          "integrated exactly (expm, load linear between steps)"},
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    render.curves(out / "tip_displacement.png", test.times,
-                  {"FOM (unseen load)": test.Y[0],
-                   f"L-OpInf r={r_top}, scheme {best['scheme']}": preds[("lopinf", r_top)].Y[0],
-                   f"L-OpInf r={r_top}, finite differences": preds[("lopinf_fd", r_top)].Y[0]},
+    series = {"FOM (unseen load)": test.Y[0],
+              f"L-OpInf r={r_top}, scheme {best['scheme']}": preds[("lopinf", r_top)].Y[0],
+              f"L-OpInf r={r_top}, finite differences": preds[("lopinf_fd", r_top)].Y[0]}
+    if peer_rows:
+        series[f"opinf peer r={r_top} (first order, {2 * r_top} states)"] = preds[("opinf_peer", r_top)].Y[0]
+    render.curves(out / "tip_displacement.png", test.times, series,
                   ylabel="tip displacement u_z [m]",
                   title=f"unseen load: relative error {best['test_output_error']:.1e}, ROM "
                         f"{best['speedup']:.0f}x faster")
     print(f"n = {train.n_states} dofs; FOM {fom_test_s:.2f} s for {n_test} steps")
     print(f"{'method':>10} {'r':>3} {'scheme':>10} {'tip err train':>13} {'unseen load':>11} "
           f"{'fit s':>6} {'ROM ms':>7}")
-    for x in rows:
+    for x in sorted(rows + peer_rows, key=lambda x: x["r"]):
         print(f"{x['method']:>10} {x['r']:>3} {x['scheme']:>10} {x['train_output_error']:13.2e} "
               f"{x['test_output_error']:11.2e} {x['infer_seconds']:6.2f} {x['rom_seconds'] * 1e3:7.1f}")
+    if with_peer:
+        print(f"opinf peer rows: {peer_seconds:.1f} s in all")
     return metrics
 
 
