@@ -270,13 +270,19 @@ class OpInfPeer:
             if self.integrator == "BDF":
                 return u
             return np.column_stack([u(t) for t in times])  # the exact integrator's samples
-        U = as_real_array(inputs, "inputs")
-        U = U[None, :] if U.ndim == 1 else U
-        if U.shape != (m, len(times)):
-            raise InputError(f"inputs has shape {U.shape}; it must be ({m}, {len(times)}): one "
-                             "column per output time")
-        check_finite(U, "inputs")
-        return U
+        return _row_matrix(inputs, "inputs", lambda shape: shape == (m, len(times)),
+                           f"({m}, {len(times)}): one column per output time")
+
+
+def _row_matrix(a, name, fits, must):
+    """``a`` as a finite 2-D array (a 1-D ``a`` is one row) whose shape ``fits``; otherwise an
+    InputError naming the shape given and what it ``must`` be."""
+    A = as_real_array(a, name)
+    A = A[None, :] if A.ndim == 1 else A
+    if A.ndim != 2 or not fits(A.shape):
+        raise InputError(f"{name} has shape {np.shape(a)}; it must be {must}")
+    check_finite(A, name)
+    return A
 
 
 def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stacked",
@@ -362,12 +368,8 @@ def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stack
             m = np.size(inputs(times[0]))
             input_func = _callable_input(inputs, m)
         else:
-            U = as_real_array(inputs, "inputs")
-            U = U[None, :] if U.ndim == 1 else U
-            if U.ndim != 2 or U.shape[1] != K:
-                raise InputError(f"inputs has shape {np.shape(inputs)}; it must be (m, {K}) or "
-                                 f"({K},): one column per sample time (or a callable of t)")
-            check_finite(U, "inputs")
+            U = _row_matrix(inputs, "inputs", lambda shape: shape[1] == K,
+                            f"(m, {K}) or ({K},): one column per sample time (or a callable of t)")
             import scipy.interpolate
 
             input_func = _callable_input(scipy.interpolate.CubicSpline(times, U, axis=1), U.shape[0])
@@ -375,12 +377,8 @@ def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stack
 
     E = None
     if output_matrix is not None:
-        E = as_real_array(output_matrix, "output_matrix")
-        E = E[None, :] if E.ndim == 1 else E
-        if E.ndim != 2 or E.shape[1] != n:
-            raise InputError(f"output_matrix has shape {np.shape(output_matrix)}; it must be "
-                             f"(p, {n}) (y = E q)")
-        check_finite(E, "output_matrix")
+        E = _row_matrix(output_matrix, "output_matrix", lambda shape: shape[1] == n,
+                        f"(p, {n}) (y = E q)")
 
     X = np.vstack([Q, Vel])
     transformer = None
