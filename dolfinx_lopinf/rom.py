@@ -46,11 +46,14 @@ import numpy as np
 
 from ._checks import (as_real_array, check_finite, check_int, check_matrix, check_positive,
                       check_square, check_vector)
+from . import compiled
 from .errors import FileFormatError, InputError, NonLagrangianWarning
 from .io_atomic import atomic_savez, open_npz
 
 #: Steps whose forcing is formed at once (memory 2 r x _CHUNK floats, whatever n_steps is).
 _CHUNK = 1024
+#: Simplified Newton (jacobian="lazy"): refresh J when |dq_k| > _LAZY_THETA |dq_{k-1}|.
+_LAZY_THETA = 0.1
 #: Relative tolerance of the symmetry / definiteness checks of the operators.
 _STRUCTURE_RTOL = 1e-8
 
@@ -84,13 +87,17 @@ def _structure_problems(name, A):
 
 @dataclass(frozen=True)
 class Trajectory:
-    """A ROM trajectory: times (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None."""
+    """A ROM trajectory: times (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None;
+    ``seconds`` of integration, the ``backend`` that ran it (``"numpy"`` or ``"numba"``) and
+    ``info`` (the wave ROM's Newton counts: ``newton_iterations``, ``jacobians``)."""
 
     times: np.ndarray
     Qh: np.ndarray
     Vh: np.ndarray
     Y: np.ndarray | None = None
     seconds: float = 0.0
+    backend: str = "numpy"
+    info: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -215,8 +222,9 @@ class LagrangianROM:
         X1 = np.vstack([qs + 0.25 * dt**2 * a1, vs + 0.5 * dt * a1])
         return X1[:, :2 * r], X1[:, 2 * r:2 * r + m], X1[:, 2 * r + m:]
 
-    def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1) -> Trajectory:
-        """Integrate with the midpoint variational integrator.
+    def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1,
+                 backend: str = "auto") -> Trajectory:
+        """Integrate with the midpoint variational integrator (or Newmark, see ``scheme``).
 
         Args:
             q0, v0: (r,) initial reduced position and velocity.
@@ -224,6 +232,10 @@ class LagrangianROM:
             inputs: for a forced ROM, a callable u(t) -> (m,), or an array of inputs: (m,
                 n_steps) at the step midpoints t_k + dt/2 (midpoint) or (m, n_steps + 1) at
                 t_0 .. t_n (Newmark).
+            backend: ``"numpy"`` (the reference loop), ``"numba"`` (the compiled loop of
+                :mod:`dolfinx_lopinf.compiled`: the same propagator and forcing, equal to
+                rounding) or ``"auto"`` (numba when installed and not disabled by
+                ``DOLFINX_LOPINF_JIT=0``). Compilation happens before the timer starts.
 
         Returns:
             :class:`Trajectory` sampled at t = 0, every*dt, ... (velocities v = Mh^{-1} p).
@@ -233,6 +245,9 @@ class LagrangianROM:
         n_steps = check_int(n_steps, "n_steps", 0)
         every = check_int(every, "every", 1)
         dt = check_positive(dt, "dt")
+        backend = compiled.resolve_backend(backend)
+        if backend == "numba":
+            compiled.kernels()  # compile / load from the cache outside the timed region
         chunks = self._input_chunks(inputs, dt, n_steps)
         t0 = time.perf_counter()
         input_seconds = 0.0  # evaluating a callable input is not integration time
@@ -246,7 +261,21 @@ class LagrangianROM:
             x = np.concatenate([q0, v0])
         X[:, 0] = x
         j = 1
-        if chunks is None:
+        if backend == "numba":
+            G, x = np.ascontiguousarray(G), np.ascontiguousarray(x)
+            if chunks is None:
+                compiled.affine_run(G, x, None, n_steps, 0, every, X, j)
+            else:
+                for k0 in range(0, n_steps, _CHUNK):
+                    k1 = min(k0 + _CHUNK, n_steps)
+                    ti = time.perf_counter()
+                    U = chunks(k0, k1)
+                    input_seconds += time.perf_counter() - ti
+                    # the forcing rows f_k of these steps, (k1-k0, 2r): the same products
+                    FT = (U.T @ H.T if self.scheme == "midpoint"
+                          else U[:, :-1].T @ H0.T + U[:, 1:].T @ H1.T)
+                    j = compiled.affine_run(G, x, FT, k1 - k0, k0, every, X, j)
+        elif chunks is None:
             for k in range(n_steps):
                 x = G @ x
                 if (k + 1) % every == 0:
@@ -271,7 +300,7 @@ class LagrangianROM:
         seconds = time.perf_counter() - t0 - input_seconds
         Y = None if self.E is None else self.E @ Qh
         times = dt * every * np.arange(n_out)
-        return Trajectory(times, Qh, Vh, Y, seconds)
+        return Trajectory(times, Qh, Vh, Y, seconds, backend)
 
     def _input_chunks(self, inputs, dt, n_steps):
         """None for an unforced model, else chunk(k0, k1) -> the inputs of steps k0 .. k1-1:
@@ -483,13 +512,26 @@ class WaveROM:
         return 0.5 * np.sum(Vh**2, axis=0) - 0.5 * np.einsum("ik,ij,jk->k", Qh, self.K, Qh) + pot
 
     def simulate(self, q0, v0, dt: float, n_steps: int, *, every: int = 1, tol: float = 1e-12,
-                 max_newton: int = 20) -> Trajectory:
+                 max_newton: int = 20, jacobian: str = "fresh", backend: str = "auto") -> Trajectory:
         """Midpoint variational integrator in position-momentum form (p = qh_t):
 
             R(q1) = p0 - (q1 - q0)/dt + dt/2 (Kh m - F(m)) = 0,  m = (q0 + q1)/2
             p1    = (q1 - q0)/dt + dt/2 (Kh m - F(m)),
 
-        each step solved by Newton with J = -I/dt + dt/4 (Kh - V^T diag(w g'(V m)) V).
+        each step solved by Newton with J = -I/dt + dt/4 (Kh - V^T diag(w g'(V m)) V), from
+        the predictor q1 = q0 + dt p0, stopped when |dq| <= tol max(|q1|, 1).
+
+        Args:
+            jacobian: ``"fresh"`` (Newton: J at every iterate) or ``"lazy"`` (simplified
+                Newton: the last J is kept, across steps too, and formed afresh at the next
+                iterate only when convergence slows, |dq_k| > theta |dq_{k-1}| with
+                theta = 0.1). Same stopping test; the converged states agree to the Newton
+                tolerance.
+            backend: ``"numpy"`` (the reference loop, any g), ``"numba"`` (the compiled loop of
+                :mod:`dolfinx_lopinf.compiled`; for g = sin, dg = cos, the sine-Gordon
+                nonlinearity, also as compiled from UFL by ``nonlinear.identify``) or
+                ``"auto"`` (numba when installed, enabled and g is sin, else numpy).
+
         Raises ``RuntimeError`` naming the step if Newton does not converge.
         """
         r, K, V, w = self.r, self.K, self.V, self._w()
@@ -497,24 +539,68 @@ class WaveROM:
         dt = check_positive(dt, "dt")
         n_steps = check_int(n_steps, "n_steps", 0)
         every = check_int(every, "every", 1)
+        max_newton = check_int(max_newton, "max_newton", 1)
+        tol = check_positive(tol, "tol")
+        if jacobian not in ("fresh", "lazy"):
+            raise InputError(f"jacobian must be 'fresh' or 'lazy', got {jacobian!r}")
+        lazy = jacobian == "lazy"
+        requested = backend
+        backend = compiled.resolve_backend(backend)
+        if backend == "numba":
+            if not compiled.is_sine(self.g, self.dg):
+                if requested == "numba":
+                    raise InputError("backend='numba' compiles the wave ROM for g = sin, dg = cos "
+                                     "(sine-Gordon) only; this ROM's g is another function - "
+                                     "pass backend='auto' or 'numpy'")
+                backend = "numpy"
+            else:
+                compiled.kernels()  # compile / load from the cache outside the timed region
         t0 = time.perf_counter()
         n_out = n_steps // every + 1
         Q, P = np.empty((r, n_out)), np.empty((r, n_out))
         Q[:, 0], P[:, 0] = q, p
+        if backend == "numba":
+            stats = np.zeros(3, dtype=np.int64)
+            C = np.ascontiguousarray
+            rnorm = compiled.kernels()["_wave_sine_run"](
+                C(K.T), C(V), C(V.T), C(w, dtype=float), C(q), C(p), dt, n_steps, every, tol,
+                max_newton, lazy, _LAZY_THETA, Q, P, stats)
+            if stats[0] > 0:
+                k = int(stats[0])
+                raise RuntimeError(f"reduced Newton did not converge at step {k} "
+                                   f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}")
+            if stats[0] < 0:
+                raise np.linalg.LinAlgError(f"Singular matrix (the Newton Jacobian at step "
+                                            f"{-int(stats[0])})")
+            info = {"newton_iterations": int(stats[2]), "jacobians": int(stats[1])}
+            return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
+                              backend, info)
         eye = np.eye(r)
+        J = None
+        n_it = n_jac = 0
         j = 1
         for k in range(n_steps):
             q1 = q + dt * p  # explicit predictor
+            refresh = not lazy or J is None
+            prev = np.inf
             for it in range(max_newton):
+                n_it += 1
                 m = 0.5 * (q + q1)
                 z = V @ m
                 F = V.T @ (w * self.g(z))
                 R = p - (q1 - q) / dt + 0.5 * dt * (K @ m - F)
-                J = -eye / dt + 0.25 * dt * (K - (V.T * (w * self.dg(z))) @ V)
+                if refresh:
+                    J = -eye / dt + 0.25 * dt * (K - (V.T * (w * self.dg(z))) @ V)
+                    n_jac += 1
+                    refresh = not lazy
                 dq = np.linalg.solve(J, -R)
                 q1 = q1 + dq
-                if np.linalg.norm(dq) <= tol * max(np.linalg.norm(q1), 1.0):
+                step = np.linalg.norm(dq)
+                if step <= tol * max(np.linalg.norm(q1), 1.0):
                     break
+                if lazy and step > _LAZY_THETA * prev:
+                    refresh = True  # convergence slowed: a fresh Jacobian at the next iterate
+                prev = step
             else:
                 raise RuntimeError(f"reduced Newton did not converge at step {k + 1} "
                                    f"(t = {(k + 1) * dt:.6g}): |R| = {np.linalg.norm(R):.3e}")
@@ -524,4 +610,5 @@ class WaveROM:
             if (k + 1) % every == 0:
                 Q[:, j], P[:, j] = q, p
                 j += 1
-        return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0)
+        return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
+                          backend, {"newton_iterations": n_it, "jacobians": n_jac})
