@@ -169,3 +169,24 @@ def test_missing_opinf_says_how_to_install(monkeypatch):
     assert not module.have_opinf()
     with pytest.raises(ImportError, match=r"pip install 'dolfinx_lopinf\[peers\]'"):
         module.opinf_first_order(np.ones((4, 10)), np.arange(10.0), 1)
+
+
+def test_h5py_still_imports_after_the_dolfinx_layer():
+    """numba + the DOLFINx wheel load libpetsc (and its HDF5) globally; opinf's h5py must
+    still import afterwards (it failed with 'Not a datatype' before _dolfinx imported it
+    first)."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    if importlib.util.find_spec("h5py") is None or importlib.util.find_spec("dolfinx") is None:
+        pytest.skip("needs h5py and dolfinx")
+    code = ("import dolfinx_lopinf._dolfinx, dolfinx.fem.petsc, h5py, numpy as np, sys\n"
+            "p = sys.argv[1]\n"
+            "with h5py.File(p, 'w') as f: f['a'] = np.arange(3.0)\n"
+            "with h5py.File(p, 'r') as f: assert list(f['a'][:]) == [0.0, 1.0, 2.0]\n")
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        proc = subprocess.run([sys.executable, "-c", code, f"{d}/t.h5"], capture_output=True,
+                              text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
