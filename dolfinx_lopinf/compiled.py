@@ -229,12 +229,15 @@ def _wave_sine_run(KT, V, VT, w, q, p, dt, n_steps, every, tol, max_newton, lazy
                 for a in range(r):
                     for b in range(r):
                         J[a, b] = 0.0
-                for i in range(s):
+                for i in range(s):  # the symmetric V^T diag(w cos z) V: upper triangle
                     ci = w[i] * np.cos(z[i])
                     for a in range(r):
                         cva = ci * V[i, a]
-                        for b in range(r):
+                        for b in range(a, r):
                             J[a, b] += cva * V[i, b]
+                for a in range(r):
+                    for b in range(a):
+                        J[a, b] = J[b, a]
                 for a in range(r):
                     for b in range(r):
                         J[a, b] = 0.25 * dt * (KT[b, a] - J[a, b])
