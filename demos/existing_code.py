@@ -171,6 +171,7 @@ def main(argv=None):
             refit = model.predict(n_train, inputs=train_load)
             cert = model.report["certificate"]
             rows.append({"method": method, "r": r, "scheme": model.scheme,
+                         "mass": model.report["mass"], "why": model.report["why"],
                          "scheme_errors": model.report["scheme_errors"],
                          "train_output_error": lo.relative_error(train.Y, refit.Y),
                          "test_output_error": lo.relative_error(test.Y, pred.Y),
@@ -237,10 +238,11 @@ def main(argv=None):
                   title=f"unseen load: relative error {best['test_output_error']:.1e}, ROM "
                         f"{best['speedup']:.0f}x faster")
     print(f"n = {train.n_states} dofs; FOM {fom_test_s:.2f} s for {n_test} steps")
-    print(f"{'method':>10} {'r':>3} {'scheme':>10} {'tip err train':>13} {'unseen load':>11} "
-          f"{'fit s':>6} {'ROM ms':>7}")
+    print(f"{'method':>10} {'r':>3} {'scheme':>10} {'Mh':>8} {'tip err train':>13} "
+          f"{'unseen load':>11} {'fit s':>6} {'ROM ms':>7}")
     for x in sorted(rows + peer_rows, key=lambda x: x["r"]):
-        print(f"{x['method']:>10} {x['r']:>3} {x['scheme']:>10} {x['train_output_error']:13.2e} "
+        print(f"{x['method']:>10} {x['r']:>3} {x['scheme']:>10} {x.get('mass', '-'):>8} "
+              f"{x['train_output_error']:13.2e} "
               f"{x['test_output_error']:11.2e} {x['infer_seconds']:6.2f} {x['rom_seconds'] * 1e3:7.1f}")
     if with_peer:
         print(f"opinf peer rows: {peer_seconds:.1f} s in all")

@@ -17,9 +17,17 @@ and L-OpInf fitted to that relation identifies the operators of the *discrete* d
   modes the step does not resolve); ROM: Newmark at the data's dt.
 * ``"auto"`` - each candidate is fitted on the first ``1 - holdout`` of every trajectory and
   predicts the held-back end by the Newmark recurrence its ROM runs, started from the two
-  states there; the smallest relative error wins, and ``model.report["scheme_errors"]`` says
-  by how much. An explicit scheme whose held-back error is 3x worse than another candidate's
-  gets a warning naming both (the data contradict the claim).
+  states there (relative error, the worst trajectory counts). ``model.report["why"]`` and
+  ``["candidate_errors"]`` say what was compared.
+
+Which reduced mass (``mass=``): Mh = I, or Mh learned (:mod:`dolfinx_lopinf.mass`), or
+``"auto"`` (default): the candidates (mass model x relation) are compared on the held-back
+end as above, and the simplest one - in the order Mh = I before learned, Newmark before
+differences - whose error is within ``MARGIN`` = 1.5 of the best is kept. A near-tie (which
+rounding or another BLAS could flip) is thus decided by that order, never by the last bits;
+a learned mass must earn its place by a clear margin. An explicit scheme whose held-back
+error is 3x worse than another relation's gets a warning naming both (the data contradict
+the claim).
 """
 
 from __future__ import annotations
@@ -37,7 +45,26 @@ from .rom import LagrangianROM, Trajectory, load_rom, save_rom
 from .snapshots import Snapshots
 
 SCHEMES = ("auto", "newmark", "midpoint", "continuous")
+MASS_MODELS = ("auto", "identity", "learned")
 _CANDIDATES = ("newmark", "continuous")  # "midpoint" has the same data relation as "newmark"
+#: (mass model, relation) from the simplest: Mh = I before a learned Mh (an SDP, which can
+#: switch modes off), the exact relation of the variational integrators before differences.
+_PREFERENCE = (("identity", "newmark"), ("identity", "continuous"),
+               ("learned", "newmark"), ("learned", "continuous"))
+#: The first candidate of :data:`_PREFERENCE` whose held-back error is within this factor
+#: of the best one wins.
+MARGIN = 1.5
+
+
+def _mass_candidates(mass):
+    """The mass models ``mass`` allows; "auto" without cvxpy (the SDP's solver) is Mh = I."""
+    if mass != "auto":
+        return (mass,)
+    try:
+        import cvxpy  # noqa: F401
+    except ImportError:
+        return ("identity",)
+    return ("identity", "learned")
 
 
 class SchemeMismatchWarning(LOpInfWarning):
@@ -201,8 +228,8 @@ def _recurrence_error(ops, Qh, U, dt):
     return float(err) if np.isfinite(err) else float("inf")
 
 
-def _choose_scheme(pieces, damping, eps, ridge, holdout, dt, mass="identity"):
-    """Held-back prediction error of each candidate relation (see the module docstring)."""
+def _held_back_errors(pieces, damping, eps, ridge, holdout, dt, masses):
+    """Held-back prediction error of every (mass model, relation) candidate (module docstring)."""
     fit_part, held = [], []
     for Qh, times, U in pieces:
         K = Qh.shape[1]
@@ -214,16 +241,32 @@ def _choose_scheme(pieces, damping, eps, ridge, holdout, dt, mass="identity"):
         # the held-back end, from the two samples before it so the recurrence starts there
         held.append((Qh[:, k_cut - 2:], None if U is None else U[:, k_cut - 2:]))
     errors = {}
-    for scheme in _CANDIDATES:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ops = _fit_relation(scheme, fit_part, damping, eps, ridge, False, mass)
-        errors[scheme] = max(_recurrence_error(ops, Qh, U, dt) for Qh, U in held)
+    for mass in masses:
+        for scheme in _CANDIDATES:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                try:
+                    ops = _fit_relation(scheme, fit_part, damping, eps, ridge, False, mass)
+                except (RuntimeError, np.linalg.LinAlgError):  # a failed candidate loses
+                    errors[(mass, scheme)] = float("inf")
+                    continue
+            errors[(mass, scheme)] = max(_recurrence_error(ops, Qh, U, dt) for Qh, U in held)
     return errors
 
 
+def _preferred(errors, allowed):
+    """The first candidate of :data:`_PREFERENCE` among ``allowed`` whose held-back error is
+    within :data:`MARGIN` of the smallest: a simpler model is only given up for a clear gain,
+    so near-ties (which rounding could flip) are decided by the order, not by the last bits."""
+    best = min(errors[c] for c in allowed)
+    for cand in _PREFERENCE:
+        if cand in allowed and errors[cand] <= MARGIN * best:
+            return cand
+    return allowed[0]
+
+
 def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
-        mass: str = "identity", basis: Basis | None = None, eps: float = 1e-8,
+        mass: str = "auto", basis: Basis | None = None, eps: float = 1e-8,
         ridge: float = RIDGE, strict: bool = False, holdout: float = 0.25) -> ReducedModel:
     """Fit an L-OpInf reduced model to one or several recorded trajectories.
 
@@ -235,11 +278,13 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
             docstring); None: the scheme the snapshots were recorded with
             (``SnapshotRecorder(u, scheme=...)``), else ``"auto"``.
         damping: fit Ch >= eps I (False: conservative, no Ch).
-        mass: ``"identity"`` (Mh = I: exact in a mass-orthonormal basis, a model-form error
-            in a Euclidean one) or ``"learned"`` (Mh fitted too, SPD, coordinate-invariant,
-            :mod:`dolfinx_lopinf.mass`; measured far better in Euclidean bases - beam block
-            basis r = 20 1.5e-5 vs 8e-4 - but its optimum can switch modes off, so it is
-            opt-in and warns when it does). The scheme is chosen with the same mass model.
+        mass: ``"auto"`` (default), ``"identity"`` or ``"learned"``. ``"identity"``: Mh = I,
+            exact in a mass-orthonormal basis, a model-form error in a Euclidean one (what a
+            black box has). ``"learned"``: Mh fitted too, SPD, coordinate-invariant
+            (:mod:`dolfinx_lopinf.mass`; beam block basis r = 20: 1.5e-5 vs 8e-4 with Mh = I),
+            but its optimum can switch modes off. ``"auto"``: both, judged with the relations
+            on the held-back end (module docstring); Mh = I unless the learned mass predicts
+            it at least ``MARGIN`` times better. Without cvxpy, auto is Mh = I.
         basis: a :class:`~dolfinx_lopinf.basis.Basis` to use; default the POD of all
             trajectories' states (block-diagonal when the snapshots name blocks).
         eps, ridge, strict: as in :func:`~dolfinx_lopinf.infer_mechanical`.
@@ -255,8 +300,8 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
         >>> model.scheme in ("newmark", "continuous")
         True
     """
-    if mass not in ("learned", "identity"):
-        raise InputError(f"mass must be 'learned' or 'identity', got {mass!r}")
+    if mass not in MASS_MODELS:
+        raise InputError(f"mass must be one of {MASS_MODELS}, got {mass!r}")
     trajs = _trajectories(snapshots)
     if scheme is None:
         recorded = {getattr(s, "scheme", None) for s in trajs}
@@ -277,23 +322,30 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
     pieces = [(basis.project(s.Q), s.times, s.U) for s in trajs]
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
               "dt": dt, "requested_scheme": scheme}
-    errors = _choose_scheme(pieces, damping, eps, ridge, holdout, dt, mass)
-    report["scheme_errors"] = errors
-    best = min(errors, key=errors.get)
-    if scheme == "auto":
-        chosen = best
-        report["why"] = (f"held-back prediction error {errors[best]:.3g} ({best}) vs "
-                         + ", ".join(f"{errors[s]:.3g} ({s})" for s in errors if s != best))
-    else:
-        chosen = scheme
-        named = "newmark" if scheme == "midpoint" else scheme
-        if errors[named] > 3 * errors[best]:
+    masses = _mass_candidates(mass)
+    errors = _held_back_errors(pieces, damping, eps, ridge, holdout, dt, masses)
+    report["candidate_errors"] = {f"{m}/{s}": e for (m, s), e in errors.items()}
+    named = "newmark" if scheme == "midpoint" else scheme
+    allowed = [c for c in errors if scheme == "auto" or c[1] == named]
+    mass_chosen, fitted = _preferred(errors, allowed)
+    chosen = fitted if scheme == "auto" else scheme
+    # per relation, with the chosen mass model
+    report["scheme_errors"] = {s: errors[(mass_chosen, s)] for s in _CANDIDATES}
+    report["why"] = (f"held-back prediction error {errors[(mass_chosen, fitted)]:.3g} "
+                     f"({mass_chosen} mass, {fitted} relation) vs "
+                     + ", ".join(f"{e:.3g} ({m}/{s})" for (m, s), e in errors.items()
+                                 if (m, s) != (mass_chosen, fitted))
+                     + f"; a simpler candidate is kept unless another is {MARGIN:g}x better")
+    if scheme != "auto":
+        best = min(_CANDIDATES, key=lambda s: errors[(mass_chosen, s)])
+        if errors[(mass_chosen, named)] > 3 * errors[(mass_chosen, best)]:
             warnings.warn(
                 f"scheme={scheme!r}: its ROM predicts the held-back data with relative error "
-                f"{errors[named]:.3g}, the {best!r} relation's with {errors[best]:.3g} (Newmark "
-                f"ROMs at the data's dt): the data do not look like a {scheme!r} loop; consider "
-                "scheme='auto'", SchemeMismatchWarning,
+                f"{errors[(mass_chosen, named)]:.3g}, the {best!r} relation's with "
+                f"{errors[(mass_chosen, best)]:.3g} (Newmark ROMs at the data's dt): the data do "
+                f"not look like a {scheme!r} loop; consider scheme='auto'", SchemeMismatchWarning,
                 stacklevel=2)
+    mass = mass_chosen
     ops = _fit_relation("newmark" if chosen == "midpoint" else chosen, pieces, damping, eps,
                         ridge, strict, mass)
     E = None
