@@ -86,11 +86,29 @@ def _affine_run(G, x, FT, n, k0, every, X, j):
     """n steps of x <- G x (+ FT[i]); stores x in X[:, j] after global step k0 + i + 1 when
     that is a multiple of every; returns the next free column j."""
     d = x.shape[0]
+    d4 = d - d % 4
     forced = FT.shape[0] > 0
     y = np.empty(d)
     since = k0 % every  # steps since the last stored state
     for i in range(n):
-        for a in range(d):  # row dot products, summed in SIMD lanes (reassoc, like a BLAS)
+        # row dot products, four rows at a time sharing the loads of x, each summed in SIMD
+        # lanes (reassoc, as a BLAS gemv does): 1.3x faster than one row at a time at 2r = 40
+        for a in range(0, d4, 4):
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            for b in range(d):
+                xb = x[b]
+                s0 += G[a, b] * xb
+                s1 += G[a + 1, b] * xb
+                s2 += G[a + 2, b] * xb
+                s3 += G[a + 3, b] * xb
+            y[a] = s0
+            y[a + 1] = s1
+            y[a + 2] = s2
+            y[a + 3] = s3
+        for a in range(d4, d):
             acc = 0.0
             for b in range(d):
                 acc += G[a, b] * x[b]

@@ -296,7 +296,9 @@ class LagrangianROM:
                         X[:, j] = x
                         j += 1
         Qh = X[:r]
-        Vh = np.linalg.solve(self.mass, X[r:]) if self.scheme == "midpoint" else X[r:]
+        Vh = X[r:]  # Newmark: velocities; midpoint: momenta p = M v (M = I when None)
+        if self.scheme == "midpoint" and self.M is not None:
+            Vh = np.linalg.solve(self.M, Vh)
         seconds = time.perf_counter() - t0 - input_seconds
         Y = None if self.E is None else self.E @ Qh
         times = dt * every * np.arange(n_out)
