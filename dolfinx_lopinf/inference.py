@@ -18,12 +18,13 @@ Compression: write Theta = [Kh, Ch, -Bh] (r, p) and D = [Qh; dQh; U] (p, K). The
     G = D D^T = L L^T,  Z = ddQh D^T L^{-T}  (r, p)   (L from a thin QR of D^T),
 
 so after one pass over the data (cost O(K p^2)) the problem no longer depends on K.
-Solvers (:mod:`dolfinx_lopinf.lsq`). Without damping and inputs, the symmetric-only
-problem has the closed-form Lyapunov solution G K + K G = -(X + X^T), X = ddQh Qh^T; if that
-minimiser already satisfies K >= eps I it *is* the L-OpInf solution (KKT holds with zero
-multiplier). Otherwise, and for damped/forced fits, an ADMM on the compressed problem with
-eigenvalue-clipping projections, certified by its KKT residuals. ``solver="cvxpy"``
-(Clarabel on the compressed problem) is the reference.
+Solvers (:mod:`dolfinx_lopinf.lsq`: a :class:`~dolfinx_lopinf.lsq.Problem` and strategy
+objects). Without damping and inputs, the symmetric-only problem has the closed-form
+Lyapunov solution G K + K G = -(X + X^T), X = ddQh Qh^T; if that minimiser already satisfies
+K >= eps I it *is* the L-OpInf solution (KKT holds with zero multiplier). Otherwise ADMM in
+the eigenbasis of G (K alone) or, for damped fits, a primal-dual interior point method with
+a certified duality gap (:class:`~dolfinx_lopinf.lsq.Auto`). ``solver="cvxpy"`` (Clarabel on
+the compressed problem) is the reference.
 
 Nonlinear-wave ROM (gray box):  qh_tt = Kh qh - Fh,  Fh = V^T f_nl(V qh), Kh = Kh^T:
 
@@ -44,8 +45,14 @@ import scipy.linalg
 
 from . import lsq
 from ._checks import check_matrix
-from .errors import (IllConditionedDataWarning, InputError, RankDeficientDataError, SolverWarning,
-                     warn)
+from .errors import (
+    IllConditionedDataWarning,
+    InputError,
+    RankDeficientDataError,
+    SolverWarning,
+    warn,
+)
+from .lsq.linalg import from_eig
 
 
 @functools.lru_cache(maxsize=1)
@@ -74,9 +81,11 @@ class MechanicalOperators:
     Attributes:
         K: (r, r) stiffness.  C: (r, r) damping or None.  B: (r, m) input or None.
         M: (r, r) learned reduced mass (``mass="learned"``), None when it is fixed to I.
-        certificate: how the solve went: ``solver``, ``status``, ``objective`` (the squared
-            residual norm ||ddQh + K Qh + C dQh - B U||_F^2), ``relative_residual``,
-            ``min_eig_K``/``min_eig_C``, ``symmetry_error``, ``seconds``.
+        certificate: how the solve went, a dict: ``solver``, ``status``, ``objective`` (the
+            squared residual norm ||ddQh + K Qh + C dQh - B U||_F^2), ``relative_residual``,
+            ``min_eig_K``/``min_eig_C``, ``symmetry_error``, ``seconds``, and the fields of
+            the solver's :class:`~dolfinx_lopinf.lsq.Certificate` (``iterations``,
+            ``duality_gap``, KKT residuals, ...; :meth:`~dolfinx_lopinf.lsq.Certificate.as_dict`).
     """
 
     K: np.ndarray
@@ -130,7 +139,7 @@ class GramData:
 
     def objective(self, theta: np.ndarray) -> float:
         """The objective the solvers minimise: ||Theta D + ddQh||_F^2 + the ridge term."""
-        return float(np.sum((theta @ self.L + self.Z) ** 2) + self.target_norm2 - np.sum(self.Z**2))
+        return float(lsq.residual_norm2(theta, self.L, self.Z) + self.target_norm2 - np.sum(self.Z**2))
 
     def data_objective(self, theta: np.ndarray) -> float:
         """||Theta D + ddQh||_F^2, the misfit without the ridge term."""
@@ -283,9 +292,24 @@ def _certificate(gram, K, C, B, solver, status, seconds, eps):
     return cert
 
 
+#: The names ``solver=`` of :func:`infer_mechanical` accepts.
+SOLVERS = ("auto", "lyapunov", "admm", "cvxpy")
+
+
+def _check_solver(solver):
+    if isinstance(solver, str):
+        if solver not in SOLVERS:
+            raise InputError(f"unknown solver {solver!r}; choose one of "
+                             f"{', '.join(repr(s) for s in SOLVERS)}, or pass a strategy object "
+                             "with a solve(problem) method (e.g. dolfinx_lopinf.lsq.PSDBlocks())")
+    elif not callable(getattr(solver, "solve", None)):
+        raise InputError(f"solver must be one of {', '.join(repr(s) for s in SOLVERS)} or an "
+                         f"object with a solve(problem) method, not a {type(solver).__name__}")
+
+
 @_serial_blas
 def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool = True,
-                     solver: str = "auto", ridge: float = RIDGE,
+                     solver: str | lsq.Strategy = "auto", ridge: float = RIDGE,
                      strict: bool = False, mass: str = "identity") -> MechanicalOperators:
     """L-OpInf for Mh qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I and
     Mh = I (``mass="identity"``) or learned too (``mass="learned"``, :mod:`dolfinx_lopinf.mass`).
@@ -297,7 +321,12 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         U: (m, K) inputs, or None for an unforced system.
         eps: lower bound on the eigenvalues of Kh (and Ch).
         damping: fit Ch too; ``False`` gives the conservative form (Kh, and Bh with inputs).
-        solver: ``"auto"`` or ``"cvxpy"`` (Clarabel on the compressed problem).
+        solver: ``"auto"`` (:class:`~dolfinx_lopinf.lsq.Auto`); ``"lyapunov"`` (the
+            symmetric minimiser, unconstrained: the conservative unforced fit only);
+            ``"admm"`` (the ADMM strategies without the interior point, a comparison
+            path); ``"cvxpy"`` (Clarabel on the compressed problem, the reference); or a
+            strategy object whose ``solve(problem)`` returns ``(Theta, Certificate)`` for
+            a :class:`~dolfinx_lopinf.lsq.Problem` (e.g. ``lsq.PSDBlocks(gap_tol=1e-10)``).
         ridge: relative Tikhonov parameter that decides the directions the data do not
             determine (see :func:`gram_data`); 0 turns it off.
         strict: raise :class:`~dolfinx_lopinf.errors.RankDeficientDataError` when the data
@@ -319,8 +348,7 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         >>> bool(np.allclose(ops.K, np.diag([1.0, 4.0]), atol=1e-5))
         True
     """
-    if solver not in ("auto", "cvxpy", "lyapunov", "admm"):
-        raise ValueError(f"unknown solver {solver!r}; choose 'auto', 'lyapunov', 'admm' or 'cvxpy'")
+    _check_solver(solver)
     if not (np.isfinite(eps) and eps >= 0):
         raise ValueError(f"eps must be a finite number >= 0, got {eps}")
     if mass not in ("identity", "learned"):
@@ -336,17 +364,18 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         return _unscaled(ops, c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
-    if solver == "lyapunov" and not conservative:
-        raise ValueError("solver='lyapunov' handles the conservative, unforced fit only "
-                         "(damping=False, U=None); use 'auto' (ADMM) or 'cvxpy'")
-    if solver == "cvxpy":
+    named = solver if isinstance(solver, str) else None
+    if named == "lyapunov" and not conservative:
+        raise InputError("solver='lyapunov' handles the conservative, unforced fit only "
+                         "(damping=False, U=None); use 'auto', 'admm' or 'cvxpy'")
+    if named == "cvxpy":
         ops = _solve_cvxpy(gram, eps)
-    elif conservative and solver in ("auto", "lyapunov"):
+    elif conservative and named in ("auto", "lyapunov"):
         ops = _solve_lyapunov(gram, eps)
-        if solver != "lyapunov" and ops.certificate["min_eig_K"] < eps:
-            ops = _solve_constrained(gram, eps)
+        if named != "lyapunov" and ops.certificate["min_eig_K"] < eps:
+            ops = _solve_constrained(gram, eps, lsq.Auto())
     else:
-        ops = _solve_constrained(gram, eps)
+        ops = _solve_constrained(gram, eps, lsq.Auto(named) if named else solver)
     return _unscaled(ops, c_state, c_input)
 
 
@@ -405,57 +434,27 @@ def _floor(A: np.ndarray, eps: float) -> np.ndarray:
     floor = eps + 64 * np.finfo(float).eps * np.abs(w).max()
     if w.min() >= floor:
         return A
-    A = (Q * np.maximum(w, floor)) @ Q.T
+    A = from_eig(np.maximum(w, floor), Q)
     return 0.5 * (A + A.T)
 
 
-def _solve_constrained(gram: GramData, eps: float) -> MechanicalOperators:
-    """PSD-constrained fit: free (input) columns minimised out exactly, then the symmetric
-    blocks: K alone by Lyapunov/eigenbasis ADMM, (K, C) by symmetric least squares and, when
-    that minimiser is not >= eps I, a primal-dual interior point method with a certified
-    duality gap (ADMM to the optimal face and Newton on it if that is not certified, the
-    log-barrier method as the last resort)."""
-    r, p = gram.r, gram.L.shape[0]
+def _solve_constrained(gram: GramData, eps: float, strategy) -> MechanicalOperators:
+    """PSD-constrained fit by ``strategy`` (:mod:`dolfinx_lopinf.lsq`) on the compressed
+    problem; K and C floored at eps against rounding, the certificate a dict: the solver's
+    :class:`~dolfinx_lopinf.lsq.Certificate` fields, the fit's and the KKT residuals."""
     t0 = time.perf_counter()
-    free = np.zeros(p, dtype=bool)
-    free[p - gram.m:] = True
-    if gram.m:
-        L_S, Z_S, recover = lsq.eliminate_free(gram.L, gram.Z, free)
-    else:
-        L_S, Z_S, recover = gram.L, gram.Z, None
-    solver = "admm"
-    if gram.has_damping:
-        # symmetric minimiser if it is >= eps I (zero multipliers), else the interior point
-        # method (ADMM + face Newton as its fallback), each with a certified duality gap
-        theta_S, info = lsq.solve_psd_blocks(L_S, Z_S, 2, eps)
-        solver = {"admm+face": "admm"}.get(info["method"], info["method"])
-        if not info["converged"]:  # the log-barrier method is slow but sure-footed
-            theta_S, info = lsq.solve_ipm(L_S, Z_S, 2, eps)
-            solver = "barrier"
-    elif gram.m:
-        theta_S = lsq.solve_symmetric(L_S, Z_S)
-        solver, info = "lyapunov", {"iterations": 0, "converged": True, "seconds": 0.0}
-        if np.linalg.eigvalsh(theta_S).min() < eps:
-            theta_S, info = lsq.solve_psd_single(L_S, Z_S, eps)
-            solver = "admm"
-    else:
-        theta_S, info = lsq.solve_psd_single(L_S, Z_S, eps)
-    theta = np.empty((r, p))
-    theta[:, ~free] = theta_S
-    if gram.m:
-        theta[:, free] = recover(theta_S)
-    K, C, B = _split_theta(theta, r, gram.m, gram.has_damping)
+    problem = lsq.Problem(gram.L, gram.Z, 2 if gram.has_damping else 1, eps, gram.m)
+    theta, solved = strategy.solve(problem)
+    K, C, B = _split_theta(theta, gram.r, gram.m, gram.has_damping)
     K = _floor(K, eps)
     C = None if C is None else _floor(C, eps)
-    blocks = [slice(0, r)] + ([slice(r, 2 * r)] if gram.has_damping else [])
-    cert = _certificate(gram, K, C, B, solver, "optimal" if info["converged"] else
-                        "not converged", time.perf_counter() - t0, eps)
-    cert.update({k: v for k, v in info.items() if k != "seconds"})
-    cert.update(lsq.kkt(gram.L, gram.Z, np.hstack([K] + ([C] if C is not None else [])
-                                                   + ([-B] if B is not None else [])), blocks, eps))
-    if not info["converged"]:
-        warnings.warn(f"{solver} stopped after {info['iterations']} iterations without meeting "
-                      "its tolerance; see the certificate's KKT residuals", SolverWarning,
+    cert = _certificate(gram, K, C, B, solved.solver, solved.status, time.perf_counter() - t0, eps)
+    cert.update({k: v for k, v in solved.as_dict().items() if k != "seconds"})
+    cert.update(problem.kkt(np.hstack([K] + ([C] if C is not None else [])
+                                      + ([-B] if B is not None else []))))
+    if not solved.converged:
+        warnings.warn(f"{solved.solver} stopped after {solved.iterations} iterations without "
+                      "meeting its tolerance; see the certificate's KKT residuals", SolverWarning,
                       stacklevel=3)
     return MechanicalOperators(K, C, B, cert)
 

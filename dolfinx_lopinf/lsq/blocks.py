@@ -1,0 +1,105 @@
+"""Several symmetric blocks >= eps I, all strategies composed (:class:`PSDBlocks`), and the
+default dispatch of :func:`dolfinx_lopinf.infer_mechanical` (:class:`Auto`)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .barrier import Barrier
+from .face import FaceADMM, FaceNewton
+from .ipm import interior_point, ip_answer
+from .lyapunov import EigenbasisADMM, Lyapunov
+from .problem import Certificate, Problem, Strategy
+
+
+def symmetric_start(problem: Problem):
+    """The unconstrained symmetric minimiser x = -H^-1 h and, per block, whether it is >= eps I."""
+    x = -problem.spd.solve(problem.normal_equations[1])
+    return x, np.linalg.eigvalsh(problem.index.blocks(x))[:, 0] >= problem.eps
+
+
+def symmetric_answer(problem: Problem, x, t0: float):
+    """The symmetric minimiser is feasible, hence optimal (zero multipliers)."""
+    return problem.index.theta(x), Certificate(
+        "symmetric-lsq", True, 0, seconds=time.perf_counter() - t0, method="symmetric-lsq",
+        duality_gap=0.0, face_ranks=[problem.r] * problem.n_blocks, polish_attempts=0)
+
+
+class PSDBlocks(Strategy):
+    """min f(Theta) = ||Theta L + Z||_F^2 over Theta = [S_1 .. S_b], S_k = S_k^T >= eps I.
+
+    In the vech unknowns x, f = x^T H x + 2 h^T x + ||Z||^2 (:func:`symmetric_normal_equations`).
+
+    1. The symmetric minimiser H x = -h; if every block is >= eps I it is the answer.
+    2. ``method="auto"``: the primal-dual interior point (:func:`interior_point`, 7-10
+       iterations of one Cholesky each; first on the blocks whose symmetric minimiser is
+       not >= eps I only when ``eliminate``), with a crossover to Newton on the face it
+       shows. If it is not certified (or ``method="admm"``):
+    3. :class:`FaceADMM`: ADMM to the optimal face, polish and Newton on it.
+
+    Certificate: the point is feasible and the projected multipliers
+    Lambda_k = [grad_{S_k} f]_+ >= 0 give the dual bound (:meth:`Problem.dual_gap`), accepted
+    when (f - g) / f <= ``gap_tol``: a proof of optimality to that relative accuracy.
+    """
+
+    def __init__(self, gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
+                 max_iter: int = 5000, memory: int = 8, rho0: float = 0.3, method: str = "auto",
+                 ipm_max_iter: int = 40, eliminate: bool = True):
+        if method not in ("auto", "admm"):
+            raise ValueError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
+                             f"not {method!r}")
+        self.method, self.ipm_max_iter, self.eliminate = method, ipm_max_iter, eliminate
+        self.face_admm = FaceADMM(gap_tol, kkt_tol, admm_tol, max_iter, memory, rho0)
+
+    def solve_blocks(self, problem: Problem):
+        t0 = time.perf_counter()
+        x, feasible = symmetric_start(problem)
+        if feasible.all():
+            return symmetric_answer(problem, x, t0)
+        newton = FaceNewton(problem, self.face_admm.gap_tol)
+        details = {}
+        if self.method == "auto" and problem.spd.ok:  # the certificate needs H > 0
+            x_ip, ip, details = interior_point(problem, x, feasible, newton,
+                                               gap_tol=self.face_admm.gap_tol,
+                                               max_iter=self.ipm_max_iter, eliminate=self.eliminate)
+            if ip.converged:
+                return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
+        return self.face_admm.run(problem, x, newton, details, t0)
+
+
+def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, **options
+                     ) -> tuple[np.ndarray, dict]:
+    """:class:`PSDBlocks` (``options``: its parameters) on ``Problem(L, Z, n_blocks, eps)``:
+    ``(Theta, certificate dict)``; ``["ipm"]["trace"]`` lists (step, centring sigma,
+    m mu / f) of every interior point iteration."""
+    theta, cert = PSDBlocks(**options).solve(Problem(L, Z, n_blocks, eps))
+    return theta, cert.as_dict()
+
+
+class Auto(Strategy):
+    """The default of :func:`dolfinx_lopinf.infer_mechanical`.
+
+    Two blocks (K, C): :class:`PSDBlocks`, and the log barrier (:class:`Barrier`) if that is
+    not certified. One block (K): the Lyapunov minimiser if it is >= eps I, else
+    :class:`EigenbasisADMM`. ``method="admm"`` skips the interior point and the Lyapunov
+    shortcut: the ADMM strategies alone (the comparison path).
+    """
+
+    def __init__(self, method: str = "auto"):
+        if method not in ("auto", "admm"):
+            raise ValueError(f"method must be 'auto' or 'admm', not {method!r}")
+        self.method = method
+
+    def solve_blocks(self, problem: Problem):
+        if problem.n_blocks > 1:
+            theta, cert = PSDBlocks(method=self.method).solve_blocks(problem)
+            if not cert.converged:
+                theta, cert = Barrier().solve_blocks(problem)
+            return theta, cert
+        if self.method == "auto":
+            theta, cert = Lyapunov().solve_blocks(problem)
+            if np.linalg.eigvalsh(theta).min() >= problem.eps:
+                return theta, cert
+        return EigenbasisADMM().solve_blocks(problem)

@@ -1,0 +1,340 @@
+"""Several symmetric blocks >= eps I: a primal-dual interior point method (HKM direction,
+Mehrotra predictor-corrector) with a certified duality gap, optionally on the active blocks
+only, and a crossover to Newton on the face it shows when it stops short."""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import numpy as np
+import scipy.linalg
+
+from .linalg import SPDSolver, from_eig, quadratic, sym, vech_index
+from .problem import Certificate, Problem, Strategy
+
+STEP_FRACTION = 0.98
+
+
+@functools.lru_cache(maxsize=32)
+def _hkm_index(r: int):
+    """Upper-triangle pairs (p <= q) of vech pairs p = (i, j), q = (k, l) (i <= j, k <= l): flat
+    positions in an r x r matrix of (i, k), (j, l), (i, l), (j, k), the weights c_p c_q (c = 1/2
+    on the diagonal) and the pair's flat position p nv + q in an nv x nv matrix."""
+    i, j = np.triu_indices(r)
+    nv = len(i)
+    p, q = np.triu_indices(nv)
+    c = np.where(i == j, 0.5, 1.0)
+    out = (i[p] * r + i[q], j[p] * r + j[q], i[p] * r + j[q], j[p] * r + i[q], c[p] * c[q], p, q)
+    for arr in out:
+        arr.setflags(write=False)
+    return out
+
+
+def _hkm_upper(Xi: np.ndarray, Lam: np.ndarray) -> np.ndarray:
+    """Upper triangle (in ``_hkm_index`` order) of M_k with M_k dx = D vech(sym(X_k^-1 dX Lambda_k))
+    for every block k, in vech coordinates (D: 2 off the diagonal):
+    M[(i,j),(k,l)] = c_ij c_kl (Xi_ik L_jl + Xi_il L_jk + L_ik Xi_jl + L_il Xi_jk), symmetric,
+    so only the triangle Cholesky reads is formed: eight gathers from the r x r matrices."""
+    ik, jl, il, jk, cc, _, _ = _hkm_index(Xi.shape[1])
+    Xf, Lf = Xi.reshape(len(Xi), -1), Lam.reshape(len(Lam), -1)
+    M = np.take(Xf, ik, axis=1) * np.take(Lf, jl, axis=1)
+    M += np.take(Xf, il, axis=1) * np.take(Lf, jk, axis=1)
+    M += np.take(Lf, ik, axis=1) * np.take(Xf, jl, axis=1)
+    M += np.take(Lf, il, axis=1) * np.take(Xf, jk, axis=1)
+    M *= cc
+    return M
+
+
+def _max_step(P_isqrt: np.ndarray, *dP: np.ndarray) -> float:
+    """Largest a <= 1 with P_k + a dP_k >= 0 for all blocks, from the stacked P_k^-1/2:
+    1 / max(0, -min_k lambda_min(P_k^-1/2 dP_k P_k^-1/2)) - one batched ``eigvalsh``."""
+    ev = np.linalg.eigvalsh(P_isqrt @ np.concatenate(dP) @ P_isqrt).min()
+    return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
+
+
+class _Stop(Exception):
+    """The interior point cannot go on (the message says why)."""
+
+
+class PrimalDualIPM:
+    """min x^T H x + 2 h^T x + const  s.t.  X_k(x) = S_k(x) - eps I >= 0  by a primal-dual
+    interior point method: HKM direction, Mehrotra predictor-corrector, one Cholesky per
+    iteration.
+
+    Optimality: grad f(x) = D vech(Lambda) (D: 2 off the diagonal), X_k Lambda_k = mu I.
+    Newton on it with Lambda eliminated, dLambda = sym(X^-1 (R - dX Lambda)), gives
+    (2 H + sum_k D (X_k^-1 (x)_s Lambda_k)) dx = -(grad f - D vech Lambda) + D vech sym(X^-1 R)
+    - the Schur matrix; R = sigma mu I - X Lambda (- dX_aff dLambda_aff in the corrector).
+    Each block is first scaled by a congruence X_k = D_k X'_k D_k (D_k^4 = diag of H on the
+    block's diagonal entries), which keeps the cone and balances K against C. x stays
+    strictly feasible and Lambda PSD, so ``certify(x, Lambda)`` (the closed-form dual bound,
+    Lambda mapped back to the unscaled blocks) is a proof of the gap.
+    """
+
+    def __init__(self, H, h, const, r, n_blocks, eps):
+        self.ix = ix = vech_index(r, n_blocks)
+        self.r, self.n_blocks, self.m = r, n_blocks, n_blocks * r
+        self.x_eps = ix.x_eps(eps)
+        dg = np.diag(H).reshape(n_blocks, ix.nv)[:, ix.iu[0] == ix.iu[1]]
+        self.dsc = np.maximum(dg, 1e-300) ** -0.25
+        self.T = (self.dsc[:, ix.iu[0]] * self.dsc[:, ix.iu[1]]).reshape(-1)
+        self.Hs = self.T[:, None] * H * self.T[None, :]
+        self.hs = self.T * (H @ self.x_eps + h)
+        self.H2 = 2.0 * self.Hs
+        self.Ms = self.H2.copy()  # Schur matrix: its diagonal blocks' upper triangles change
+        _, _, _, _, _, tp, tq = _hkm_index(r)
+        self.diag_pos = [(k * ix.nv + tp) * ix.n + k * ix.nv + tq for k in range(n_blocks)]
+        self.c0 = quadratic(H, h, const, self.x_eps)
+
+    def f(self, v):
+        """The objective in the scaled unknowns (const = ||Z||^2; a stopping guide only)."""
+        return quadratic(self.Hs, self.hs, self.c0, v)
+
+    def run(self, x_start, *, certify, gap_tol, max_iter=40, watch=None):
+        """Iterate from ``x_start`` until the certified relative gap is <= ``gap_tol``.
+        ``watch(x, m mu / f)``, if given, is called after every iteration and ends the loop
+        when it returns False. Returns ``(x, Certificate)``; its ``face_ranks`` is the rank of
+        each X_k and ``details`` holds ``trace`` ((step, sigma, m mu / f) per iteration),
+        ``mu`` and why it ``stopped`` short."""
+        ix, m = self.ix, self.m
+        x, X, Lam = self._start(x_start)
+        mu = float(np.sum(X * Lam)) / m
+        cert = Certificate("ipm", False, 0, duality_gap=np.inf, face_multiplier_min=-np.inf)
+        for it in range(1, max_iter + 1):
+            cert.iterations = it
+            try:
+                dx, dL, a, sigma = self._step(x, X, Lam, it)
+            except _Stop as stop:
+                cert.details["stopped"] = str(stop)
+                break
+            x = x + a * dx
+            X, Lam = ix.blocks(x), Lam + a * dL
+            mu = float(np.sum(X * Lam)) / m
+            f_ref = max(abs(self.f(x)), 1e-300)
+            cert.details.setdefault("trace", []).append((a, sigma, m * mu / f_ref))
+            if watch is not None and not watch(self.x_eps + self.T * x, m * mu / f_ref):
+                cert.details["stopped"] = "stopped by watch"
+                break
+            if (m * mu <= gap_tol * f_ref or a < 1e-3) and self._certified(cert, certify, x, Lam,
+                                                                          gap_tol, a):
+                break
+        # rank of each X_k: the eigen-directions where X exceeds Lambda (their product is ~mu,
+        # strict complementarity sends one of them to 0; the scaling makes the two comparable:
+        # Lambda ~ grad f ~ H' x')
+        wX, VX = np.linalg.eigh(X)
+        wL = np.einsum("kia,kij,kja->ka", VX, Lam, VX)
+        cert.details["mu"] = mu
+        cert.face_ranks = [int(v) for v in (wX > wL).sum(axis=1)]
+        return self.x_eps + self.T * x, cert
+
+    def _start(self, x_start):
+        """Scaled x_start with its eigenvalues made positive, and Lambda = c X^-1."""
+        ix = self.ix
+        w, Q = np.linalg.eigh(ix.blocks((x_start - self.x_eps) / self.T))
+        floor = 1e-3 * np.abs(w).max(axis=1, keepdims=True)
+        X = from_eig(np.maximum(np.abs(w), floor), Q)
+        x = ix.vech(X)
+        f_ref = max(abs(self.f(x)), 1e-300)
+        return x, X, np.linalg.inv(X) * (0.1 * f_ref / self.m)
+
+    def _certified(self, cert, certify, x, Lam, gap_tol, a) -> bool:
+        """Ask ``certify`` for the gap; True when the loop should end."""
+        gap, lam_min = certify(self.x_eps + self.T * x, Lam / (self.dsc[:, :, None] * self.dsc[:, None, :]))
+        if not np.isfinite(gap):
+            cert.details["stopped"] = "no certificate for this point"
+            return True
+        cert.duality_gap, cert.face_multiplier_min = gap, lam_min
+        if gap <= gap_tol:
+            cert.converged = True
+            return True
+        if a < 1e-3:
+            cert.details["stopped"] = "step length below 1e-3"
+            return True
+        return False
+
+    def _step(self, x, X, Lam, it):
+        """Predictor-corrector direction and step: (dx, dLambda, step, sigma)."""
+        ix, m = self.ix, self.m
+        wX, VX = np.linalg.eigh(X)  # X^-1 through the eigenbasis: PD however wide X's spread
+        if wX.min() <= 0:
+            raise _Stop(f"iterate not positive definite at iteration {it}")
+        Xi = (VX / wX[:, None, :]) @ VX.transpose(0, 2, 1)
+        rd = 2.0 * (self.Hs @ x + self.hs) - ix.Dw * ix.vech(Lam)
+        mu = float(np.sum(X * Lam)) / m
+        c = self._schur_cholesky(Xi, Lam)
+        if c is None:
+            raise _Stop(f"Schur matrix not positive definite at iteration {it}, mu {mu:.1e}, "
+                        f"f {self.f(x):.3e}")
+        XL = X @ Lam
+        try:
+            wL, VL = np.linalg.eigh(Lam)
+            if wL.min() <= 0:
+                raise np.linalg.LinAlgError("multiplier not positive definite")
+            V = np.concatenate([VX, VL])  # (X_k, Lambda_k)^-1/2 stacked for the step lengths
+            P_is = (V / np.sqrt(np.concatenate([wX, wL]))[:, None, :]) @ V.transpose(0, 2, 1)
+            dx, dX, dL = self._direction(c, Xi, Lam, rd, -XL)                 # predictor (mu -> 0)
+            a = _max_step(P_is, dX, dL)
+            mu_aff = float(np.sum((X + a * dX) * (Lam + a * dL))) / m
+            sigma = (mu_aff / mu) ** 3
+            dx, dX, dL = self._direction(c, Xi, Lam, rd, sigma * mu * np.eye(self.r) - XL - dX @ dL)
+            a = min(1.0, STEP_FRACTION * _max_step(P_is, dX, dL))            # corrector
+        except np.linalg.LinAlgError:  # X or Lambda lost definiteness to rounding
+            raise _Stop(f"iterate not positive definite at iteration {it}") from None
+        return dx, dL, a, sigma
+
+    def _schur_cholesky(self, Xi, Lam):
+        """Lower Cholesky factor of the Schur matrix 2 H + HKM terms, or None."""
+        hkm = _hkm_upper(Xi, Lam)
+        Ms_flat, H2_flat = self.Ms.reshape(-1), self.H2.reshape(-1)
+        for k in range(self.n_blocks):  # the diagonal blocks' upper triangles; the rest stays 2 H
+            Ms_flat[self.diag_pos[k]] = H2_flat[self.diag_pos[k]] + hkm[k]
+        # lower Cholesky of the F-ordered view Ms^T (its lower triangle is Ms's upper one, the
+        # part written above), 20 % faster than the upper one; no diagonal scaling is needed
+        # (Cholesky's accuracy does not depend on one)
+        c, status = scipy.linalg.lapack.dpotrf(self.Ms.T, lower=1, clean=0)
+        for shift in (1e-12, 1e-10, 1e-8):  # rounding as mu -> 0: a small relative shift
+            if status == 0:
+                break
+            Mshift = self.Ms.T.copy(order="F")
+            Mshift[np.diag_indices(len(self.Ms))] *= 1.0 + shift
+            c, status = scipy.linalg.lapack.dpotrf(Mshift, lower=1, clean=0, overwrite_a=1)
+        return c if status == 0 else None
+
+    def _direction(self, c, Xi, Lam, rd, R):
+        XiR = Xi @ R
+        rhs = -rd + self.ix.Dw * self.ix.vech(sym(XiR))
+        dx = scipy.linalg.lapack.dpotrs(c, rhs, lower=1)[0]
+        dX = self.ix.blocks(dx)
+        return dx, dX, sym(XiR - Xi @ dX @ Lam)
+
+
+class _ActiveBlocks:
+    """The interior point on the blocks whose unconstrained minimiser is not >= eps I, the
+    others (``feasible``, presumed inactive at the optimum) minimised out exactly:
+    x_f = -H_ff^-1 (h_f + H_fa x_a), leaving x_a^T (H_aa - H_af H_ff^-1 H_fa) x_a + ... on the
+    active blocks - a Schur matrix of half the size (one eighth of the Cholesky). With zero
+    multipliers on the eliminated blocks the full problem's dual bound is the reduced one,
+    so ``Problem.dual_gap`` of the full x proves the answer once the eliminated blocks are
+    checked >= eps I; if they are not (the presumption was wrong), no answer."""
+
+    def __init__(self, problem: Problem, feasible: np.ndarray):
+        H, h = problem.normal_equations
+        self.problem, self.feasible = problem, feasible
+        pos = np.arange(problem.index.n).reshape(problem.n_blocks, problem.index.nv)
+        self.a_idx, self.f_idx = pos[~feasible].ravel(), pos[feasible].ravel()
+        Hff = SPDSolver(H[np.ix_(self.f_idx, self.f_idx)])
+        self.ok = Hff.ok
+        if self.ok:
+            Hfa = H[np.ix_(self.f_idx, self.a_idx)]
+            self.W = Hff.solve(np.column_stack([Hfa, h[self.f_idx]]))  # H_ff^-1 [H_fa, h_f]
+            self.Hr = sym(H[np.ix_(self.a_idx, self.a_idx)] - Hfa.T @ self.W[:, :-1])
+            self.hr = h[self.a_idx] - Hfa.T @ self.W[:, -1]
+            self.const = float(np.sum(problem.Z**2) - h[self.f_idx] @ self.W[:, -1])
+
+    def full(self, xa):
+        xf = np.empty(self.problem.index.n)
+        xf[self.a_idx], xf[self.f_idx] = xa, -(self.W[:, -1] + self.W[:, :-1] @ xa)
+        return xf
+
+    def eliminated_ok(self, xf) -> bool:
+        """The eliminated blocks of a full x are >= eps I."""
+        return np.linalg.eigvalsh(self.problem.index.blocks(xf)[self.feasible]).min() >= self.problem.eps
+
+    def certify(self, xa, lam_a):
+        xf = self.full(xa)
+        if not self.eliminated_ok(xf):
+            return np.nan, np.nan
+        p = self.problem
+        lam = np.zeros((p.n_blocks, p.r, p.r))
+        lam[~self.feasible] = lam_a
+        return p.dual_gap(xf, lam)
+
+    def watch(self, xa, rel_gap) -> bool:
+        """Once near the optimum, the eliminated blocks must be >= eps I."""
+        return rel_gap > 1e-3 or self.eliminated_ok(self.full(xa))
+
+    def run(self, x, gap_tol, max_iter):
+        """``(full x, Certificate)`` of a converged reduced run, or None."""
+        if not self.ok:
+            return None
+        p, active = self.problem, int((~self.feasible).sum())
+        ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps)
+        xa, cert = ipm.run(x[self.a_idx], certify=self.certify, gap_tol=gap_tol,
+                           max_iter=max_iter, watch=self.watch)
+        if not cert.converged:
+            return None
+        ranks = np.full(p.n_blocks, p.r)
+        ranks[~self.feasible] = cert.face_ranks
+        cert.face_ranks = [int(k) for k in ranks]
+        cert.details["eliminated_blocks"] = [int(k) for k in np.flatnonzero(self.feasible)]
+        return self.full(xa), cert
+
+
+def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_iter=40,
+                   eliminate=True):
+    """The interior point from the symmetric minimiser ``x`` (``feasible``: its blocks that
+    are >= eps I): first on the active blocks only (``eliminate``, if some block is
+    feasible), else on all; if it stops uncertified, Newton on the face it shows
+    (``newton``: a :class:`~dolfinx_lopinf.lsq.face.FaceNewton`). Needs H > 0.
+    Returns ``(x, Certificate, details)``."""
+    H, h = problem.normal_equations
+    details, result = {}, None
+    if eliminate and feasible.any():
+        result = _ActiveBlocks(problem, feasible).run(x, gap_tol, max_iter)
+        details["eliminated_blocks_tried"] = [int(k) for k in np.flatnonzero(feasible)]
+    if result is None:
+        ipm = PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), problem.r, problem.n_blocks,
+                            problem.eps)
+        result = ipm.run(x, certify=problem.dual_gap, gap_tol=gap_tol, max_iter=max_iter)
+    x_ip, cert = result
+    if not cert.converged:
+        x_ip = _crossover(problem, x_ip, cert, newton, gap_tol)
+    details["ipm"] = {k: v for k, v in cert.as_dict().items() if k not in ("solver", "face_ranks")}
+    return x_ip, cert, details
+
+
+def _crossover(problem: Problem, x_ip, cert, newton, gap_tol):
+    """Newton on the face the stopped interior point shows; updates ``cert`` if certified."""
+    ix, r = problem.index, problem.r
+    w, Q = np.linalg.eigh(ix.blocks(x_ip) - problem.eps * np.eye(r))
+    w = np.where(np.arange(r)[None, :] >= r - np.array(cert.face_ranks)[:, None], w, 0.0)
+    x_face = ix.x_eps(problem.eps) + ix.vech(from_eig(w, Q))
+    refined = newton.refine(x_face, cert.face_ranks) if min(w.max(axis=1)) >= 0 else None
+    if refined is None or refined[1] > gap_tol:
+        return x_ip
+    cert.converged, cert.duality_gap = True, refined[1]
+    cert.details["crossover"] = True
+    cert.face_multiplier_min = problem.dual_gap(refined[0])[1]
+    return refined[0]
+
+
+class InteriorPoint(Strategy):
+    """Symmetric blocks >= eps I by the primal-dual interior point (:func:`interior_point`,
+    crossover included) alone, without the ADMM fallback of :class:`PSDBlocks`."""
+
+    def __init__(self, gap_tol: float = 1e-8, max_iter: int = 40, eliminate: bool = True):
+        self.gap_tol, self.max_iter, self.eliminate = gap_tol, max_iter, eliminate
+
+    def solve_blocks(self, problem: Problem):
+        from .blocks import symmetric_answer, symmetric_start
+        from .face import FaceNewton
+
+        t0 = time.perf_counter()
+        x, feasible = symmetric_start(problem)
+        if feasible.all():
+            return symmetric_answer(problem, x, t0)
+        if not problem.spd.ok:
+            raise ValueError("the interior point's certificate needs a nonsingular H")
+        newton = FaceNewton(problem, self.gap_tol)
+        x_ip, ip, details = interior_point(problem, x, feasible, newton, gap_tol=self.gap_tol,
+                                           max_iter=self.max_iter, eliminate=self.eliminate)
+        return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
+
+
+def ip_answer(ip: Certificate, details: dict, newton, t0: float) -> Certificate:
+    """The certificate of an interior point answer."""
+    return Certificate("ipm", ip.converged, ip.iterations, seconds=time.perf_counter() - t0,
+                       method="ipm", duality_gap=ip.duality_gap, face_ranks=ip.face_ranks,
+                       face_multiplier_min=ip.face_multiplier_min, polish_attempts=0,
+                       details={**details, **newton.details()})

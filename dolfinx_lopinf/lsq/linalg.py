@@ -1,0 +1,170 @@
+"""The numerics every strategy shares, each written once: the residual and the quadratic
+objective, eigen-reassembly and the PSD projection, the Jacobi-equilibrated SPD solve, the
+vech index tables and the normal equations in the vech unknowns."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+
+def residual_norm2(theta: np.ndarray, L: np.ndarray, Z: np.ndarray) -> float:
+    """The objective ||Theta L + Z||_F^2 of the compressed problem."""
+    return float(np.sum((theta @ L + Z) ** 2))
+
+
+def quadratic(H: np.ndarray, h: np.ndarray, c: float, x: np.ndarray) -> float:
+    """The same objective in vech unknowns: x^T H x + 2 h^T x + c."""
+    return float(x @ (H @ x) + 2.0 * h @ x + c)
+
+
+def sym(A: np.ndarray) -> np.ndarray:
+    """Symmetric part of a matrix or a stack of matrices."""
+    return 0.5 * (A + np.swapaxes(A, -1, -2))
+
+
+def from_eig(w: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Q diag(w) Q^T, for one matrix or a stack."""
+    return (Q * w[..., None, :]) @ np.swapaxes(Q, -1, -2)
+
+
+def psd_project(A: np.ndarray, floor: float):
+    """Frobenius projection of sym(A) onto {S = S^T, S >= floor I} (batched): (S, w, Q) with
+    sym(A) = Q diag(w) Q^T."""
+    w, Q = np.linalg.eigh(sym(A))
+    return from_eig(np.maximum(w, floor), Q), w, Q
+
+
+class SPDSolver:
+    """Jacobi-equilibrated Cholesky of an SPD matrix H (the K and C unknowns multiply data of
+    very different size), reused for every solve; ``ok`` is False when H is singular (then
+    ``solve`` is least squares)."""
+
+    def __init__(self, H: np.ndarray):
+        self.d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        self.Hs = H / np.outer(self.d, self.d)
+        # lower Cholesky of the F-ordered view of the symmetric Hs (no copy, faster than upper)
+        self.c, status = scipy.linalg.lapack.dpotrf(self.Hs.T, lower=1, clean=0)
+        self.ok = status == 0
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        d = self.d if rhs.ndim == 1 else self.d[:, None]
+        if self.ok:
+            return scipy.linalg.lapack.dpotrs(self.c, rhs / d, lower=1)[0] / d
+        return np.linalg.lstsq(self.Hs, rhs / d, rcond=None)[0] / d
+
+
+@dataclass(frozen=True)
+class VechIndex:
+    """The vech unknowns x of Theta = [S_1 .. S_b] (S_k = S_k^T, r x r).
+
+    Unknown a = (k, i <= j) sits at Theta[i, k r + j] and, when i != j, also at
+    Theta[j, k r + i]. ``iu`` are the upper-triangle indices of one block, ``full[i, j]`` the
+    vech position of (i, j) within a block, ``off`` is 1 for off-diagonal unknowns (0 on the
+    diagonal), ``blk`` the block of each unknown, ``rows``/``lcols`` the row and in-block
+    column of the first position of each unknown. Read-only; one per (r, b) (:func:`vech_index`).
+    """
+
+    r: int
+    n_blocks: int
+    iu: tuple
+    full: np.ndarray
+    rows: np.ndarray
+    lcols: np.ndarray
+    off: np.ndarray
+    blk: np.ndarray
+
+    @property
+    def nv(self) -> int:
+        """Unknowns per block, r (r + 1) / 2."""
+        return len(self.iu[0])
+
+    @property
+    def n(self) -> int:
+        return self.n_blocks * self.nv
+
+    @property
+    def Dw(self) -> np.ndarray:
+        """<D vech(A), x> = <A, S(x)>: weight 2 off the diagonal."""
+        return 1.0 + self.off
+
+    def x_eps(self, eps: float) -> np.ndarray:
+        """vech of [eps I .. eps I]."""
+        return np.tile(eps * (1.0 - self.off[:self.nv]), self.n_blocks)
+
+    def blocks(self, x: np.ndarray) -> np.ndarray:
+        """(b, r, r) stack of the blocks S_k(x)."""
+        return x.reshape(self.n_blocks, self.nv)[:, self.full]
+
+    def vech(self, S: np.ndarray) -> np.ndarray:
+        """x of a (b, r, r) stack of symmetric blocks."""
+        return S[:, self.iu[0], self.iu[1]].reshape(-1)
+
+    def theta(self, x: np.ndarray) -> np.ndarray:
+        """Theta(x) = [S_1 .. S_b] (r, b r)."""
+        return self.blocks(x).transpose(1, 0, 2).reshape(self.r, -1)
+
+
+@functools.lru_cache(maxsize=32)
+def vech_index(r: int, n_blocks: int) -> VechIndex:
+    iu = np.triu_indices(r)
+    nv = len(iu[0])
+    full = np.zeros((r, r), dtype=np.intp)
+    full[iu] = np.arange(nv)
+    full = np.triu(full) + np.triu(full, 1).T
+    blk = np.repeat(np.arange(n_blocks), nv)
+    i, j = np.tile(iu[0], n_blocks), np.tile(iu[1], n_blocks)
+    index = VechIndex(r, n_blocks, iu, full, i, j, (i != j).astype(float), blk)
+    for arr in (*iu, full, i, j, index.off, blk):
+        arr.setflags(write=False)
+    return index
+
+
+def face_basis(P: np.ndarray, iu) -> np.ndarray:
+    """Columns vech(P E_ab P^T), a <= b, E_ab = e_a e_b^T + e_b e_a^T (one term if a = b): the
+    vech coordinates of the symmetric matrices P A P^T."""
+    a, b = np.triu_indices(P.shape[1])
+    Pi, Pj = P[iu[0]], P[iu[1]]
+    return Pi[:, a] * Pj[:, b] + (a != b) * Pi[:, b] * Pj[:, a]
+
+
+def unvech(c: np.ndarray, m: int) -> np.ndarray:
+    """The symmetric m x m matrix whose upper triangle (row-major) is c."""
+    A = np.zeros((m, m))
+    ia, ib = np.triu_indices(m)
+    A[ia, ib] = A[ib, ia] = c
+    return A
+
+
+def symmetric_normal_equations(L: np.ndarray, Z: np.ndarray, n_blocks: int):
+    """H, h with ||Theta(x) L + Z||_F^2 = x^T H x + 2 h^T x + ||Z||_F^2 in the vech unknowns.
+
+    Row i of Theta is E_i x, E_i selecting (S_1[i, :], .., S_b[i, :]) from x, so
+    H = sum_i E_i^T G E_i and h = sum_i E_i^T X[i] with G = L L^T, X = Z L^T: r scatters of
+    the p x p matrix G - O(r p^2) work.
+    """
+    r, p = Z.shape
+    dest_H, dest_h = _normal_equation_index(r, n_blocks)
+    G, X = L @ L.T, Z @ L.T
+    n = n_blocks * r * (r + 1) // 2
+    H = np.bincount(dest_H, weights=np.broadcast_to(G.ravel(), (r, p * p)).ravel(), minlength=n * n)
+    h = np.bincount(dest_h, weights=X.ravel(), minlength=n)
+    return H.reshape(n, n), h
+
+
+@functools.lru_cache(maxsize=32)
+def _normal_equation_index(r: int, n_blocks: int):
+    """Flat destinations in H (n x n) of G's entries for every row i of Theta (E_i^T G E_i),
+    and in h of X[i]'s entries: the r scatters of :func:`symmetric_normal_equations` as one
+    ``bincount``."""
+    index = vech_index(r, n_blocks)
+    nv, n = index.nv, index.n
+    idx = (index.full[:, None, :] + nv * np.arange(n_blocks)[None, :, None]).reshape(r, -1)  # (r, p)
+    dest_H = (idx[:, :, None] * n + idx[:, None, :]).ravel()
+    dest_h = idx.ravel()
+    for arr in (dest_H, dest_h):
+        arr.setflags(write=False)
+    return dest_H, dest_h
