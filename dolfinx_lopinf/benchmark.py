@@ -22,6 +22,7 @@ Times are medians over repeats (``ours``) or single runs (cvxpy). Prints a table
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 import warnings
@@ -29,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import inference, lsq
+from . import inference
 from .ddt import derivatives
 from .rom import LagrangianROM
 
@@ -49,7 +50,7 @@ def _median_time(fn, repeats):
 def _cvxpy_compressed(gram, eps, kind):
     import cvxpy as cp
 
-    r, p = gram.r, gram.L.shape[0]
+    r = gram.r
     zn = np.linalg.norm(gram.Z)
     s = zn / max(np.linalg.norm(gram.L), 1e-300)
     if kind == "wave":
@@ -102,7 +103,10 @@ def forced_data(r, n, seed=0):
     C = 0.05 * Cm @ Cm.T / r + 0.01 * np.eye(r)
     B = rng.standard_normal((r, 1))
     freqs = rng.uniform(0.5, 3.0, size=3)
-    u = lambda t: np.array([np.sin(freqs * t).sum()])  # noqa: E731
+
+    def u(t):
+        return np.array([np.sin(freqs * t).sum()])
+
     dt = 2e-3
     tr = LagrangianROM(K=K, C=C, B=B).simulate(rng.standard_normal(r), rng.standard_normal(r),
                                                dt, n + 7, inputs=u)
@@ -152,15 +156,16 @@ def main(argv=None):
                     basis = pod(win.Q, r, blocks=win.blocks)
                     Qh, dQh, ddQh = derivatives(basis.project(win.Q), win.times)
                     dQh, U, damping = None, None, False
-                    fit = lambda: inference.infer_mechanical(Qh, None, ddQh, damping=False, eps=eps)  # noqa: E731
+                    fit = functools.partial(inference.infer_mechanical, Qh, None, ddQh,
+                                            damping=False, eps=eps)
                 elif kind == "forced":
                     Qh, dQh, ddQh, U = forced_data(r, K)
                     damping = True
-                    fit = lambda: inference.infer_mechanical(Qh, dQh, ddQh, U, eps=eps)  # noqa: E731
+                    fit = functools.partial(inference.infer_mechanical, Qh, dQh, ddQh, U, eps=eps)
                 else:
                     Qh, ddQh, Fh = wave_data(r, K)
                     dQh, U, damping = None, None, False
-                    fit = lambda: inference.infer_wave(Qh, ddQh, Fh)  # noqa: E731
+                    fit = functools.partial(inference.infer_wave, Qh, ddQh, Fh)
                 t_ours, ops = _median_time(fit, args.repeats)
                 solve_s = ops.certificate.get("seconds", float("nan"))
                 target = ddQh + Fh if kind == "wave" else ddQh

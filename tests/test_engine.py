@@ -118,14 +118,14 @@ def test_infer_wave_recovers_a_symmetric_operator():
 
 
 def test_rom_save_load_roundtrip_and_newmark(tmp_path):
-    data, (K, C, B) = _forced_damped_data(r=3, m=1)
+    _, (K, C, B) = _forced_damped_data(r=3, m=1)
     rom = lo.LagrangianROM(K=K, C=C, B=B, E=np.ones((1, 3)), scheme="newmark",
                            meta={"method": "lopinf"})
     path = lo.save_rom(tmp_path / "rom.npz", rom, basis_rows=np.eye(3)[:2], rows=[7, 9])
     loaded, extras = lo.load_rom(path)
     assert loaded.scheme == "newmark" and loaded.meta == {"method": "lopinf"}
     assert np.array_equal(extras["rows"], [7, 9])
-    u = lambda t: np.array([np.sin(t)])  # noqa: E731
+    u = lambda t: np.array([np.sin(t)])
     a = rom.simulate(np.ones(3), np.zeros(3), 1e-2, 300, inputs=u)
     b = loaded.simulate(np.ones(3), np.zeros(3), 1e-2, 300, inputs=u)
     assert np.array_equal(a.Y, b.Y)
@@ -139,10 +139,10 @@ def test_forced_rom_converges_at_second_order(scheme):
 
     K, C, B = np.diag([1.0, 4.0]), 0.1 * np.eye(2), np.array([[1.0], [0.5]])
     rom = lo.LagrangianROM(K=K, C=C, B=B, scheme=scheme)
-    u = lambda t: np.array([np.sin(2 * t)])  # noqa: E731
-    rhs = lambda t, y: np.concatenate([y[2:], B @ u(t) - C @ y[2:] - K @ y[:2]])  # noqa: E731
+    u = lambda t: np.array([np.sin(2 * t)])
+    rhs = lambda t, y: np.concatenate([y[2:], B @ u(t) - C @ y[2:] - K @ y[:2]])
     ref = solve_ivp(rhs, [0, 4], [1, 0, 0, 0], rtol=1e-12, atol=1e-13).y[:2, -1]
-    errs = [np.abs(rom.simulate(np.array([1.0, 0]), np.zeros(2), dt, int(round(4 / dt)),
+    errs = [np.abs(rom.simulate(np.array([1.0, 0]), np.zeros(2), dt, round(4 / dt),
                                 inputs=u).Qh[:, -1] - ref).max() for dt in (0.02, 0.01)]
     assert 3.5 < errs[0] / errs[1] < 4.5
 
@@ -196,7 +196,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     g = gram_data(Qh, dQh, ddQh, U)
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
-    L_S, Z_S, recover = lsq.eliminate_free(g.L, g.Z, free)
+    L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
     theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method=method)
     assert info["converged"] and info["method"] == {"auto": "ipm", "admm": "admm+face"}[method]
     assert info["duality_gap"] <= 1e-8

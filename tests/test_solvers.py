@@ -1,0 +1,280 @@
+"""The least-squares solvers as objects (dolfinx_lopinf.lsq): the shared numerics, the
+Problem and its Certificate, and each strategy on its own - every strategy reaches the same
+certified optimum, and infer_mechanical takes a name or a strategy object (numpy only)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf import lsq
+from dolfinx_lopinf.errors import InputError
+from dolfinx_lopinf.lsq import linalg
+
+EPS = 1e-8
+
+
+def _problem(r=5, n_blocks=2, n_free=0, seed=0, active=True):
+    """A compressed problem whose unconstrained optimum has indefinite blocks (``active``)."""
+    rng = np.random.default_rng(seed)
+    p = n_blocks * r + n_free
+    L = np.tril(rng.standard_normal((p, p))) + 3 * np.eye(p)
+    blocks = []
+    for _ in range(n_blocks):
+        A = rng.standard_normal((r, r))
+        S = A @ A.T / r + 0.1 * np.eye(r)
+        if active:
+            w, Q = np.linalg.eigh(S)
+            S = (Q * (w - 0.6 * w.max() * (np.arange(r) < r // 2))) @ Q.T
+        blocks.append(0.5 * (S + S.T))
+    theta_star = np.hstack(blocks + [rng.standard_normal((r, n_free))])
+    Z = -theta_star @ L + 1e-3 * rng.standard_normal((r, p))
+    return lsq.Problem(L, Z, n_blocks, EPS, n_free)
+
+
+def _assert_feasible(theta, problem):
+    for b in problem.block_slices:
+        assert np.array_equal(theta[:, b], theta[:, b].T)
+        w = np.linalg.eigvalsh(theta[:, b])
+        assert w.min() >= EPS - 64 * np.finfo(float).eps * np.abs(w).max()
+
+
+# -- the shared numerics ------------------------------------------------------------------
+
+def test_psd_project_is_the_frobenius_projection_and_batches():
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((3, 4, 4))
+    S, w, Q = linalg.psd_project(A, 0.1)
+    assert np.allclose(w, np.linalg.eigvalsh(linalg.sym(A)))
+    for k in range(3):
+        one = linalg.psd_project(A[k], 0.1)[0]
+        assert np.array_equal(one, S[k])  # the batched projection is the single one
+        assert np.linalg.eigvalsh(one).min() >= 0.1 - 1e-12
+        # idempotent, and the residual is orthogonal to the cone's tangent at S (NSD part)
+        assert np.allclose(linalg.psd_project(one, 0.1)[0], one, atol=1e-12)
+        assert np.linalg.eigvalsh(linalg.sym(A[k]) - one).max() <= 1e-12
+    assert np.allclose(linalg.from_eig(w, Q), linalg.sym(A))
+
+
+def test_spd_solver_equilibrates_and_falls_back_on_singular_matrices():
+    rng = np.random.default_rng(1)
+    B = rng.standard_normal((6, 6))
+    d = np.logspace(-6, 6, 6)
+    H = d[:, None] * (B @ B.T + np.eye(6)) * d[None, :]  # SPD, condition ~1e24 by its scaling
+    y = rng.standard_normal((6, 2))
+    rhs = d[:, None] * ((B @ B.T + np.eye(6)) @ y)  # H x = rhs for x = y / d, every entry accurate
+    solver = linalg.SPDSolver(H)
+    assert solver.ok
+    assert np.allclose(solver.solve(rhs) * d[:, None], y, rtol=1e-10)
+    assert np.allclose(solver.solve(rhs[:, 0]) * d, y[:, 0], rtol=1e-10)
+    singular = linalg.SPDSolver(np.diag([1.0, 0.0]))
+    assert not singular.ok and np.allclose(singular.solve(np.array([2.0, 0.0])), [2.0, 0.0])
+
+
+def test_vech_index_round_trips_and_lays_out_theta():
+    r, nb = 4, 2
+    ix = linalg.vech_index(r, nb)
+    assert ix.nv == 10 and ix.n == 20 and linalg.vech_index(r, nb) is ix  # cached, read-only
+    with pytest.raises(ValueError):
+        ix.full[0, 0] = 1
+    x = np.arange(ix.n, dtype=float)
+    S = ix.blocks(x)
+    assert np.array_equal(S, S.transpose(0, 2, 1)) and np.array_equal(ix.vech(S), x)
+    assert np.array_equal(ix.theta(x), np.hstack(list(S)))
+    assert np.array_equal(ix.blocks(ix.x_eps(0.5)), np.stack([0.5 * np.eye(r)] * nb))
+    # <D vech(A), x> = <A, S(x)> for symmetric A
+    A = linalg.sym(np.random.default_rng(0).standard_normal((nb, r, r)))
+    assert np.isclose(ix.Dw * ix.vech(A) @ x, np.sum(A * S))
+
+
+def test_face_basis_and_unvech_span_the_face():
+    rng = np.random.default_rng(2)
+    r, m = 5, 2
+    P = np.linalg.qr(rng.standard_normal((r, m)))[0]
+    A = linalg.unvech(rng.standard_normal(m * (m + 1) // 2), m)
+    iu = np.triu_indices(r)
+    c = A[np.triu_indices(m)]
+    assert np.allclose(linalg.face_basis(P, iu) @ c, (P @ A @ P.T)[iu])
+
+
+def test_objective_is_written_once_and_agrees_everywhere():
+    """||Theta L + Z||^2 three ways: the residual, the quadratic in vech unknowns, GramData."""
+    problem = _problem(seed=3)
+    H, h = problem.normal_equations
+    x = np.random.default_rng(3).standard_normal(problem.index.n)
+    theta = problem.index.theta(x)
+    f = problem.objective(theta)
+    assert linalg.quadratic(H, h, float(np.sum(problem.Z**2)), x) == pytest.approx(f, rel=1e-12)
+    assert problem.objective_x(x) == f == linalg.residual_norm2(theta, problem.L, problem.Z)
+
+
+# -- the problem and the certificate ------------------------------------------------------
+
+def test_problem_checks_its_layout_and_minimises_free_columns_out():
+    with pytest.raises(ValueError, match="do not fit"):
+        lsq.Problem(np.eye(7), np.zeros((3, 7)), 2, EPS)
+    problem = _problem(r=3, n_free=2, seed=4)
+    with pytest.raises(ValueError, match="free columns"):
+        problem.normal_equations  # noqa: B018
+    reduced, recover = problem.without_free()
+    assert reduced.n_free == 0 and reduced.L.shape == (6, 6)
+    theta_S = np.hstack([np.eye(3), 2 * np.eye(3)])
+    theta = np.hstack([theta_S, recover(theta_S)])
+    # the free columns are optimal for the given blocks, and the objectives agree
+    assert problem.objective(theta) == pytest.approx(reduced.objective(theta_S), rel=1e-10)
+    grad = 2 * (theta @ problem.L + problem.Z) @ problem.L.T
+    assert np.abs(grad[:, 6:]).max() < 1e-9 * np.abs(grad).max()
+
+
+def test_certificate_as_dict_is_the_flat_dict_of_set_fields():
+    cert = lsq.Certificate("ipm", True, 7, seconds=0.5, duality_gap=1e-9,
+                           details={"ipm": {"iterations": 7}, "crossover": True})
+    d = cert.as_dict()
+    assert d == {"solver": "ipm", "converged": True, "iterations": 7, "seconds": 0.5,
+                 "duality_gap": 1e-9, "ipm": {"iterations": 7}, "crossover": True}
+    assert cert.status == "optimal"
+    assert lsq.Certificate("admm", False).status == "not converged"
+
+
+# -- the strategies, each on its own ------------------------------------------------------
+
+def test_lyapunov_is_exact_and_wants_one_block():
+    rng = np.random.default_rng(5)
+    L = np.tril(rng.standard_normal((4, 4))) + 3 * np.eye(4)
+    K = np.diag([1.0, 2.0, 3.0, 4.0])
+    theta, cert = lsq.Lyapunov().solve(lsq.Problem(L, -K @ L, 1, EPS))
+    assert np.allclose(theta, K, atol=1e-12) and cert.converged and cert.solver == "lyapunov"
+    with pytest.raises(ValueError, match="one symmetric block"):
+        lsq.Lyapunov().solve(_problem())
+
+
+def test_eigenbasis_admm_agrees_with_the_interior_point_on_one_block():
+    problem = _problem(r=6, n_blocks=1, seed=6)
+    theta, cert = lsq.EigenbasisADMM().solve(problem)
+    assert cert.converged and cert.solver == "admm" and cert.iterations > 0
+    _assert_feasible(theta, problem)
+    kkt = problem.kkt(theta)
+    assert kkt["multiplier_min_eig"] > -1e-7 and kkt["complementarity"] < 1e-6
+    theta_ip, cert_ip = lsq.InteriorPoint().solve(problem)
+    assert cert_ip.converged and cert_ip.duality_gap <= 1e-8
+    assert problem.objective(theta) == pytest.approx(problem.objective(theta_ip), rel=1e-7)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_every_block_strategy_reaches_the_same_certified_optimum(seed):
+    problem = _problem(r=5, n_blocks=2, seed=seed)
+    results = {}
+    for strategy in (lsq.InteriorPoint(), lsq.InteriorPoint(eliminate=False), lsq.FaceADMM(),
+                     lsq.PSDBlocks(), lsq.PSDBlocks(method="admm"), lsq.Barrier(), lsq.Auto()):
+        theta, cert = strategy.solve(problem)
+        assert cert.converged, strategy
+        assert cert.duality_gap <= 1e-8, (strategy, cert.duality_gap)
+        _assert_feasible(theta, problem)
+        results[repr(strategy)] = problem.objective(theta)
+    f = np.array(list(results.values()))
+    assert f.max() - f.min() <= 2e-8 * f.min(), results
+    assert lsq.FaceADMM().solve(problem)[1].method == "admm+face"
+    assert lsq.PSDBlocks().solve(problem)[1].method == "ipm"
+
+
+def test_free_columns_are_handled_by_every_strategy():
+    problem = _problem(r=4, n_blocks=2, n_free=2, seed=7)
+    theta, cert = lsq.PSDBlocks().solve(problem)
+    assert theta.shape == (4, 10) and cert.converged
+    grad = 2 * (theta @ problem.L + problem.Z) @ problem.L.T
+    assert np.abs(grad[:, 8:]).max() < 1e-8 * np.abs(grad).max()  # free columns stationary
+
+
+def test_the_symmetric_minimiser_answers_when_it_is_feasible():
+    problem = _problem(r=4, seed=8, active=False)
+    theta, cert = lsq.PSDBlocks().solve(problem)
+    assert cert.method == "symmetric-lsq" and cert.iterations == 0 and cert.duality_gap == 0.0
+    H, h = problem.normal_equations
+    assert np.allclose(problem.index.vech(np.stack(np.split(theta, 2, axis=1))),
+                       -np.linalg.solve(H, h))
+
+
+def test_primal_dual_ipm_certifies_its_gap_and_reports_its_face():
+    problem = _problem(r=5, seed=9)
+    H, h = problem.normal_equations
+    x0 = -np.linalg.solve(H, h)
+    ipm = lsq.PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), 5, 2, EPS)
+    x, cert = ipm.run(x0, certify=problem.dual_gap, gap_tol=1e-8)
+    assert cert.converged and cert.duality_gap <= 1e-8 and 0 < cert.iterations < 40
+    assert len(cert.details["trace"]) == cert.iterations
+    assert all(k < 5 for k in cert.face_ranks)  # both constraints active
+    gap, _ = problem.dual_gap(x)
+    assert gap <= 1e-8
+
+
+def test_face_newton_turns_a_rough_face_into_a_certified_optimum():
+    """Stopped after three interior point iterations, the point shows the face; polish and
+    Newton on it reach the certified optimum in a few steps."""
+    problem = _problem(r=5, seed=10)
+    H, h = problem.normal_equations
+    ipm = lsq.PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), 5, 2, EPS)
+    x, rough = ipm.run(-np.linalg.solve(H, h), certify=problem.dual_gap, gap_tol=1e-8, max_iter=3)
+    assert not rough.converged
+    newton = lsq.FaceNewton(problem, 1e-8)
+    ranks = lsq.InteriorPoint().solve(problem)[1].face_ranks
+    S = problem.index.blocks(x) - EPS * np.eye(5)
+    w, Q = np.linalg.eigh(S)
+    w = np.where(np.arange(5)[None, :] >= 5 - np.array(ranks)[:, None], w, 0.0)
+    x_face = problem.index.x_eps(EPS) + problem.index.vech(linalg.from_eig(w, Q))
+    xp, a_min = lsq.polish(problem, w + EPS * (w > 0), Q)
+    assert a_min > 0
+    refined = newton.refine(xp, ranks) or newton.refine(x_face, ranks)
+    assert refined is not None and refined[1] <= 1e-8
+    assert newton.steps >= 1 and newton.details()["newton_steps"] == newton.steps
+
+
+# -- infer_mechanical takes a name or an object, and rejects what it does not know --------
+
+def _forced_data(r=4):
+    from dolfinx_lopinf.benchmark import forced_data
+
+    return forced_data(r, 3000, seed=3)
+
+
+def test_infer_mechanical_rejects_unknown_solvers_naming_the_valid_ones():
+    data = _forced_data()
+    with pytest.raises(InputError, match="unknown solver 'sdpt3'.*'auto', 'lyapunov', 'admm', 'cvxpy'"):
+        lo.infer_mechanical(*data, solver="sdpt3")
+    with pytest.raises(InputError, match="solve\\(problem\\) method, not a int"):
+        lo.infer_mechanical(*data, solver=3)
+    with pytest.raises(InputError, match="conservative, unforced"):
+        lo.infer_mechanical(*data, solver="lyapunov")
+
+
+def test_infer_mechanical_takes_a_strategy_object_and_admm_is_a_real_path():
+    data = _forced_data()
+    auto = lo.infer_mechanical(*data)
+    obj = lo.infer_mechanical(*data, solver=lsq.PSDBlocks())
+    assert np.array_equal(obj.K, auto.K) and np.array_equal(obj.B, auto.B)
+    assert {k for k in auto.certificate if k != "seconds"} == {k for k in obj.certificate if k != "seconds"}
+    admm = lo.infer_mechanical(*data, solver="admm")
+    assert admm.certificate["method"] == "admm+face" and admm.certificate["solver"] == "admm"
+    assert admm.certificate["status"] == "optimal" and admm.certificate["duality_gap"] <= 1e-8
+    assert admm.certificate["objective"] == pytest.approx(auto.certificate["objective"], rel=1e-7)
+
+    class Clip(lsq.Strategy):  # a user's strategy: the unconstrained fit, projected
+        def solve_blocks(self, problem):
+            theta = lsq.PSDBlocks(method="admm", max_iter=1).solve_blocks(problem)[0]
+            return theta, lsq.Certificate("clip", False, 1)
+
+    with pytest.warns(lo.errors.SolverWarning, match="clip stopped after 1 iterations"):
+        ops = lo.infer_mechanical(*data, solver=Clip())
+    assert ops.certificate["solver"] == "clip" and ops.certificate["status"] == "not converged"
+
+
+def test_conservative_admm_skips_the_lyapunov_shortcut():
+    rng = np.random.default_rng(2)
+    Qh = rng.standard_normal((3, 600))
+    ddQh = -np.diag([3.0, 1.0, 2.0]) @ Qh + 0.01 * rng.standard_normal((3, 600))
+    auto = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        admm = lo.infer_mechanical(Qh, None, ddQh, damping=False, solver="admm")
+    assert auto.certificate["solver"] == "lyapunov" and admm.certificate["solver"] == "admm"
+    assert np.allclose(admm.K, auto.K, rtol=1e-6)
