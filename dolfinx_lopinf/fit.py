@@ -281,7 +281,7 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
         mass: ``"auto"`` (default), ``"identity"`` or ``"learned"``. ``"identity"``: Mh = I,
             exact in a mass-orthonormal basis, a model-form error in a Euclidean one (what a
             black box has). ``"learned"``: Mh fitted too, SPD, coordinate-invariant
-            (:mod:`dolfinx_lopinf.mass`; beam block basis r = 20: 1.5e-5 vs 8e-4 with Mh = I),
+            (:mod:`dolfinx_lopinf.mass`; beam block basis r = 20: 1.4e-5 vs 8e-4 with Mh = I),
             but its optimum can switch modes off. ``"auto"``: both, judged with the relations
             on the held-back end (module docstring); Mh = I unless the learned mass predicts
             it at least ``MARGIN`` times better. Without cvxpy, auto is Mh = I.
