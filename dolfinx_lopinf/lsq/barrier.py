@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from .linalg import SPDSolver, psd_project, quadratic
-from .problem import Certificate, Problem, Strategy
+from .problem import Certificate, Problem, Strategy, symmetric_start
 
 
 def _barrier_derivatives(ix, Sinv):
@@ -68,7 +68,7 @@ class Barrier(Strategy):
     def _start(problem: Problem):
         """The unconstrained symmetric minimiser, its eigenvalues lifted above eps."""
         ix, r, eps = problem.index, problem.r, problem.eps
-        S = ix.blocks(-problem.spd.solve(problem.normal_equations[1])) - eps * np.eye(r)
+        S = ix.blocks(symmetric_start(problem)[0]) - eps * np.eye(r)
         scale = max(max(np.abs(np.linalg.eigvalsh(Sk)).max() for Sk in S), 1e-12)
         return ix.vech(psd_project(S + eps * np.eye(r), eps + 1e-3 * scale)[0])
 

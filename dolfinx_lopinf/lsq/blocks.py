@@ -11,20 +11,7 @@ from .barrier import Barrier
 from .face import FaceADMM, FaceNewton
 from .ipm import interior_point, ip_answer
 from .lyapunov import EigenbasisADMM, Lyapunov
-from .problem import Certificate, Problem, Strategy
-
-
-def symmetric_start(problem: Problem):
-    """The unconstrained symmetric minimiser x = -H^-1 h and, per block, whether it is >= eps I."""
-    x = -problem.spd.solve(problem.normal_equations[1])
-    return x, np.linalg.eigvalsh(problem.index.blocks(x))[:, 0] >= problem.eps
-
-
-def symmetric_answer(problem: Problem, x, t0: float):
-    """The symmetric minimiser is feasible, hence optimal (zero multipliers)."""
-    return problem.index.theta(x), Certificate(
-        "symmetric-lsq", True, 0, seconds=time.perf_counter() - t0, method="symmetric-lsq",
-        duality_gap=0.0, face_ranks=[problem.r] * problem.n_blocks, polish_attempts=0)
+from .problem import Problem, Strategy, symmetric_answer, symmetric_start
 
 
 class PSDBlocks(Strategy):

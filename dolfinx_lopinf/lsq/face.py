@@ -11,7 +11,7 @@ import numpy as np
 import scipy.linalg
 
 from .linalg import SPDSolver, face_basis, from_eig, psd_project, sym, unvech
-from .problem import Certificate, Problem, Strategy
+from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
 
 
 def _reduce_to_face(H, vec, J_cols, nv):
@@ -282,8 +282,6 @@ class FaceADMM(Strategy):
         self.max_iter, self.memory, self.rho0 = max_iter, memory, rho0
 
     def solve_blocks(self, problem: Problem):
-        from .blocks import symmetric_answer, symmetric_start
-
         t0 = time.perf_counter()
         x, feasible = symmetric_start(problem)
         if feasible.all():

@@ -10,8 +10,9 @@ import time
 import numpy as np
 import scipy.linalg
 
+from .face import FaceNewton
 from .linalg import SPDSolver, from_eig, quadratic, sym, vech_index
-from .problem import Certificate, Problem, Strategy
+from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
 
 STEP_FRACTION = 0.98
 
@@ -276,7 +277,7 @@ def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_i
     """The interior point from the symmetric minimiser ``x`` (``feasible``: its blocks that
     are >= eps I): first on the active blocks only (``eliminate``, if some block is
     feasible), else on all; if it stops uncertified, Newton on the face it shows
-    (``newton``: a :class:`~dolfinx_lopinf.lsq.face.FaceNewton`). Needs H > 0.
+    (``newton``: a :class:`FaceNewton`). Needs H > 0.
     Returns ``(x, Certificate, details)``."""
     H, h = problem.normal_equations
     details, result = {}, None
@@ -317,9 +318,6 @@ class InteriorPoint(Strategy):
         self.gap_tol, self.max_iter, self.eliminate = gap_tol, max_iter, eliminate
 
     def solve_blocks(self, problem: Problem):
-        from .blocks import symmetric_answer, symmetric_start
-        from .face import FaceNewton
-
         t0 = time.perf_counter()
         x, feasible = symmetric_start(problem)
         if feasible.all():

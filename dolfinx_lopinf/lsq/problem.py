@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -217,6 +218,19 @@ class Problem:
     def _blocks_only(self):
         if self.n_free:
             raise ValueError("minimise the free columns out first (Problem.without_free)")
+
+
+def symmetric_start(problem: Problem):
+    """The unconstrained symmetric minimiser x = -H^-1 h and, per block, whether it is >= eps I."""
+    x = -problem.spd.solve(problem.normal_equations[1])
+    return x, np.linalg.eigvalsh(problem.index.blocks(x))[:, 0] >= problem.eps
+
+
+def symmetric_answer(problem: Problem, x, t0: float):
+    """The symmetric minimiser is feasible, hence optimal (zero multipliers)."""
+    return problem.index.theta(x), Certificate(
+        "symmetric-lsq", True, 0, seconds=time.perf_counter() - t0, method="symmetric-lsq",
+        duality_gap=0.0, face_ranks=[problem.r] * problem.n_blocks, polish_attempts=0)
 
 
 class Strategy:
