@@ -24,6 +24,10 @@ class InputError(LOpInfError, ValueError):
     names the argument, the offending value and the remedy."""
 
 
+class InputTypeError(InputError, TypeError):
+    """An argument has the wrong type (e.g. not a dolfinx Function, not a UFL Form)."""
+
+
 class RankDeficientDataError(InputError):
     """The data do not determine the operators (raised with ``strict=True``, or when a data
     row is identically zero)."""
@@ -31,6 +35,17 @@ class RankDeficientDataError(InputError):
 
 class FileFormatError(LOpInfError, OSError):
     """A file is not one of ours, is truncated or corrupt, or lacks a required entry."""
+
+
+class StepFailedError(LOpInfError, RuntimeError):
+    """A time step failed: a reduced Newton iteration (numpy or compiled ROM loop) or the
+    FOM's nonlinear solve (PETSc SNES) did not converge. The message names the step and time;
+    a smaller dt or a lower amplitude is the usual remedy."""
+
+
+class SolverFailedError(LOpInfError, RuntimeError):
+    """An optimisation solver (Clarabel through cvxpy) reported failure (infeasible, numerical
+    error): no answer was returned."""
 
 
 class CheckpointMismatchError(InputError):

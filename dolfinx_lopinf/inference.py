@@ -49,6 +49,7 @@ from .errors import (
     IllConditionedDataWarning,
     InputError,
     RankDeficientDataError,
+    SolverFailedError,
     SolverWarning,
     warn,
 )
@@ -485,7 +486,7 @@ def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
     prob.solve(solver=cp.CLARABEL)
     seconds = time.perf_counter() - t0
     if prob.status not in ("optimal", "optimal_inaccurate"):
-        raise RuntimeError(f"cvxpy/Clarabel failed on the L-OpInf problem: status {prob.status}")
+        raise SolverFailedError(f"cvxpy/Clarabel failed on the L-OpInf problem: status {prob.status}")
     Kv = s * K.value
     Kv = 0.5 * (Kv + Kv.T)
     Cv = None if C is None else s * 0.5 * (C.value + C.value.T)

@@ -55,7 +55,8 @@ def dense_state_matrix(form, V, state_map: StateMap) -> np.ndarray:
     A.assemble()
     n = len(state_map.order)
     if n > 20000:
-        raise ValueError(f"n = {n} is too large for a dense state matrix")
+        raise InputError(f"n = {n} is too large for a dense state matrix (limit 20,000): "
+                         "project with the basis instead (dolfinx_lopinf.intrusive)")
     dense = reduced_matrix(A, V, np.eye(n), state_map)
     A.destroy()
     return 0.5 * (dense + dense.T)

@@ -29,12 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._dolfinx import MPI, dolfinx, ufl
-from .errors import InputError
+from .errors import InputError, InputTypeError
 
 
 def _as_function(obj, name):
     if not isinstance(obj, dolfinx.fem.Function):
-        raise TypeError(f"{name} must be a dolfinx.fem.Function, got {type(obj).__name__}")
+        raise InputTypeError(f"{name} must be a dolfinx.fem.Function, got {type(obj).__name__}")
     return obj
 
 
@@ -174,21 +174,21 @@ class LagrangianSystem:
         self.q = _as_function(q, "q")
         self.q_t = _as_function(q_t, "q_t")
         if q.function_space != q_t.function_space:
-            raise ValueError("q and q_t must live on the same function space")
+            raise InputError("q and q_t must live on the same function space")
         if not isinstance(lagrangian, ufl.Form):
-            raise TypeError(
+            raise InputTypeError(
                 "the Lagrangian must be a UFL Form, e.g. (0.5*q_t**2 - 0.5*q.dx(0)**2)*ufl.dx; "
                 f"got {type(lagrangian).__name__}"
             )
         if lagrangian.arguments():
-            raise ValueError(
+            raise InputError(
                 "the Lagrangian must be a scalar form (a functional of q and q_t) without test "
                 f"or trial functions; it has arguments {lagrangian.arguments()}"
             )
         coefficients = set(lagrangian.coefficients())
         if q not in coefficients or q_t not in coefficients:
             missing = [n for n, f in (("q", q), ("q_t", q_t)) if f not in coefficients]
-            raise ValueError(f"the Lagrangian does not depend on {', '.join(missing)}")
+            raise InputError(f"the Lagrangian does not depend on {', '.join(missing)}")
         self.lagrangian = lagrangian
         self.V = q.function_space
         self.bcs = check_bcs(bcs, self.V)
@@ -199,9 +199,9 @@ class LagrangianSystem:
         if forcing is not None:
             args = forcing.arguments() if isinstance(forcing, ufl.Form) else ()
             if len(args) != 1 or args[0].number() != 0:
-                raise ValueError("forcing must be a UFL 1-form f(q, q_t; dq) with one test function")
+                raise InputError("forcing must be a UFL 1-form f(q, q_t; dq) with one test function")
             if args[0].ufl_function_space() != self.V:
-                raise ValueError("the forcing's test function must be on the space of q")
+                raise InputError("the forcing's test function must be on the space of q")
             self.forcing = ufl.replace(forcing, {args[0]: self.test})
 
         v, du = self.test, self.trial

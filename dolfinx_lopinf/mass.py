@@ -47,7 +47,7 @@ import scipy.linalg
 
 from ._checks import check_matrix
 from .errors import (IllConditionedDataWarning, InputError, RankDeficientDataError,
-                     SolverWarning, warn)
+                     SolverFailedError, SolverWarning, warn)
 
 #: Lower bound on the eigenvalues of the learned mass, relative to its normalisation
 #: tr(M W) = 1 (W has unit trace, so M = I is feasible).
@@ -176,9 +176,9 @@ def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
     try:
         prob.solve(solver=cp.CLARABEL)
     except cp.error.SolverError as exc:
-        raise RuntimeError(f"Clarabel failed on the learned-mass L-OpInf problem: {exc}") from exc
+        raise SolverFailedError(f"Clarabel failed on the learned-mass L-OpInf problem: {exc}") from exc
     if prob.status not in ("optimal", "optimal_inaccurate"):
-        raise RuntimeError(f"Clarabel failed on the learned-mass L-OpInf problem: status {prob.status}")
+        raise SolverFailedError(f"Clarabel failed on the learned-mass L-OpInf problem: status {prob.status}")
     sdp_seconds = time.perf_counter() - t0
     sym = {name: 0.5 * (v.value + v.value.T) for name, v in variables.items() if name != "B"}
     theta_sdp = np.hstack([sym[name] if name != "B" else variables["B"].value

@@ -23,6 +23,7 @@ from typing import Callable
 import numpy as np
 
 from ._dolfinx import dolfinx, ufl
+from .errors import InputError
 from ufl.corealg.traversal import unique_pre_traversal
 
 _UNARY = {"Cos": np.cos, "Sin": np.sin, "Exp": np.exp, "Ln": np.log, "Sqrt": np.sqrt,
@@ -128,7 +129,7 @@ def identify(system) -> PointwiseNonlinearity:
                 continue
             deps = {type(t).__name__ for t in unique_pre_traversal(term)}
             if "Grad" in deps or qt in _coefficients(term):
-                raise ValueError(
+                raise InputError(
                     "a non-quadratic term of the Lagrangian involves derivatives of q or q_t; "
                     "the gray-box wave ROM needs the nonlinearity as a pointwise potential U(q)")
             found.append(-term)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
 from .fom import StateMap
 from .integrators import MidpointIntegrator
 
@@ -33,7 +34,7 @@ def reprojected_trajectory(integrator: MidpointIntegrator, V: np.ndarray, M: np.
     if integrator.system.V.mesh.comm.size > 1:
         raise NotImplementedError("re-projection is implemented for serial runs")
     if not np.allclose(V.T @ M @ V, np.eye(V.shape[1]), atol=1e-8):
-        raise ValueError("re-projection needs an M-orthonormal basis (V^T M V = I)")
+        raise InputError("re-projection needs an M-orthonormal basis (V^T M V = I)")
     order, scale = state_map.order, state_map.scale
     p_vec = integrator.p.duplicate()
     qh, ph = V.T @ M @ q0, V.T @ M @ v0

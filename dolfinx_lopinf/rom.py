@@ -47,7 +47,7 @@ import numpy as np
 from ._checks import (as_real_array, check_finite, check_int, check_matrix, check_positive,
                       check_square, check_vector)
 from . import compiled
-from .errors import FileFormatError, InputError, NonLagrangianWarning
+from .errors import FileFormatError, InputError, NonLagrangianWarning, StepFailedError
 from .io_atomic import atomic_savez, open_npz
 
 #: Steps whose forcing is formed at once (memory 2 r x _CHUNK floats, whatever n_steps is).
@@ -569,8 +569,8 @@ class WaveROM:
                 max_newton, lazy, _LAZY_THETA, Q, P, stats)
             if stats[0] > 0:
                 k = int(stats[0])
-                raise RuntimeError(f"reduced Newton did not converge at step {k} "
-                                   f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}")
+                raise StepFailedError(f"reduced Newton did not converge at step {k} "
+                                      f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}; try a smaller dt")
             if stats[0] < 0:
                 raise np.linalg.LinAlgError(f"Singular matrix (the Newton Jacobian at step "
                                             f"{-int(stats[0])})")
@@ -604,8 +604,9 @@ class WaveROM:
                     refresh = True  # convergence slowed: a fresh Jacobian at the next iterate
                 prev = step
             else:
-                raise RuntimeError(f"reduced Newton did not converge at step {k + 1} "
-                                   f"(t = {(k + 1) * dt:.6g}): |R| = {np.linalg.norm(R):.3e}")
+                raise StepFailedError(f"reduced Newton did not converge at step {k + 1} "
+                                      f"(t = {(k + 1) * dt:.6g}): |R| = {np.linalg.norm(R):.3e}; "
+                                      "try a smaller dt")
             m = 0.5 * (q + q1)
             p = (q1 - q) / dt + 0.5 * dt * (K @ m - V.T @ (w * self.g(V @ m)))
             q = q1
