@@ -18,7 +18,7 @@ $(VENV)/.installed: pyproject.toml
 	echo "creating $(VENV) with $$py"; \
 	$$py -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dolfinx,test,peers,fast]'
+	$(PY) -m pip install --quiet -e '.[all,test,peers]'
 	@touch $@
 
 venv: $(VENV)/.installed

@@ -53,6 +53,6 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["errors", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+__all__ = ["ddt", "errors", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
            "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]

@@ -81,8 +81,8 @@ def newmark_r2(repeats):
     U = np.sin(dt * np.arange(n + 1))[None]
     res = {}
     for backend in ("numpy", "numba"):
-        res[backend], tr = _median(lambda: rom.simulate(np.zeros(2), np.zeros(2), dt, n, inputs=U,
-                                                        backend=backend), repeats)
+        res[backend], tr = _median(lambda b=backend: rom.simulate(np.zeros(2), np.zeros(2), dt, n,
+                                                                  inputs=U, backend=b), repeats)
         res[f"tr_{backend}"] = tr
     res["rel_diff"] = _rel(res.pop("tr_numpy").Qh, res.pop("tr_numba").Qh)
     return res
@@ -100,7 +100,7 @@ def beam_r20(repeats, gflops):
     trs = {}
     for backend, reps in (("numba", repeats), ("numpy", max(1, repeats // 2))):
         res[backend], trs[backend] = _median(
-            lambda: rom.simulate(q0, np.zeros(r), dt, n, every=every, backend=backend), reps)
+            lambda b=backend: rom.simulate(q0, np.zeros(r), dt, n, every=every, backend=b), reps)
     flops = 2 * (2 * r) ** 2 * n
     res.update(flops=flops, estimate=flops / (gflops * 1e9), gflops=gflops,
                rel_diff=_rel(trs["numpy"].Qh, trs["numba"].Qh))
@@ -168,8 +168,8 @@ def sine_gordon(n, repeats, use_fom, full_too):
         ref = None
         for backend, jac in (("numpy", "fresh"), ("numba", "fresh"), ("numba", "lazy")):
             reps = max(1, repeats // 2) if backend == "numpy" else repeats
-            sec, tr = _median(lambda: rom.simulate(q0h, v0h, DT_SG, n_steps, every=EVERY,
-                                                   backend=backend, jacobian=jac), reps)
+            sec, tr = _median(lambda rom=rom, b=backend, j=jac: rom.simulate(
+                q0h, v0h, DT_SG, n_steps, every=EVERY, backend=b, jacobian=j), reps)
             E = rom.energy(tr.Qh, tr.Vh)
             row = {"n": n, "rows": label, "points": int(rom.V.shape[0]), "backend": backend,
                    "jacobian": jac, "seconds": sec, "step_us": 1e6 * sec / n_steps,

@@ -233,7 +233,7 @@ def _wave_sine_run(KT, V, VT, w, q, p, dt, n_steps, every, tol, max_newton, lazy
         refresh = not lazy or not have_lu
         prev = np.inf
         converged = False
-        for it in range(max_newton):
+        for _ in range(max_newton):
             n_it += 1
             for a in range(r):
                 m[a] = 0.5 * (q[a] + q1[a])

@@ -493,7 +493,8 @@ def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
     Bv = None if negB is None else -s * negB.value
     cert = _certificate(gram, Kv, Cv, Bv, "cvxpy-clarabel", prob.status, seconds, eps)
     if prob.status != "optimal":
-        warnings.warn(f"Clarabel returned {prob.status}; check the certificate", SolverWarning)
+        warnings.warn(f"Clarabel returned {prob.status}; check the certificate", SolverWarning,
+                      stacklevel=2)
     return MechanicalOperators(Kv, Cv, Bv, cert)
 
 

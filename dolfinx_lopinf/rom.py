@@ -585,7 +585,7 @@ class WaveROM:
             q1 = q + dt * p  # explicit predictor
             refresh = not lazy or J is None
             prev = np.inf
-            for it in range(max_newton):
+            for _ in range(max_newton):
                 n_it += 1
                 m = 0.5 * (q + q1)
                 z = V @ m

@@ -108,7 +108,7 @@ def test_wave_matches_numpy(ecsw, jacobian, every):
 def test_wave_nonlinearity_detection():
     K, V, w = _wave(ecsw=True)
     # sin and cos as other function objects (like nonlinear.identify's) still compile
-    rom = WaveROM(K=K, V=V, g=lambda z: -(-np.sin(z)), dg=lambda z: 1.0 * np.cos(z), U=np.cos,
+    rom = WaveROM(K=K, V=V, g=lambda z: 0.0 - (0.0 - np.sin(z)), dg=lambda z: 1.0 * np.cos(z), U=np.cos,
                   weights=w)
     assert rom.simulate(np.zeros(rom.r), np.ones(rom.r), 0.01, 5).backend == "numba"
     cubic = WaveROM(K=K, V=V, g=lambda z: z**3, dg=lambda z: 3 * z**2, U=lambda z: z**4 / 4,
