@@ -46,6 +46,7 @@ import numpy as np
 import scipy.linalg
 
 from ._checks import check_matrix
+from .lsq.linalg import from_eig, psd_project
 from .errors import (IllConditionedDataWarning, InputError, RankDeficientDataError,
                      SolverFailedError, SolverWarning, warn)
 
@@ -89,7 +90,7 @@ def infer_with_mass(Qh, dQh, ddQh, U=None, *, damping: bool = True, eps: float =
              " the fit switched a direction off; use mass='identity' or a smaller r",
              IllConditionedDataWarning)
         ops = MechanicalOperators(ops.K, ops.C, ops.B, ops.certificate,
-                                  M=(Q * np.maximum(w, 1e-8 * w[-1])) @ Q.T)
+                                  M=from_eig(np.maximum(w, 1e-8 * w[-1]), Q))
     W = Qh @ Qh.T / np.sum(Qh**2)
     c = np.sum(ops.M * W)  # normalise tr(M W) = 1 in the user's coordinates
     cert = dict(ops.certificate, seconds=time.perf_counter() - t0)
@@ -254,7 +255,7 @@ def _polish(M, Qh, dQh, ddQh, U, damping, eps, ridge, blocks):
     w, Q = np.linalg.eigh(M)
     if w.min() <= 0:
         return None
-    S = (Q * np.sqrt(w)) @ Q.T
+    S = from_eig(np.sqrt(w), Q)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -304,8 +305,7 @@ def _dual_bound(Y, L, W, r, layout, floors):
             targets.append(-Gs)
         else:
             Gsym = 0.5 * (Gs + Gs.T)
-            w, Q = np.linalg.eigh(Gsym)
-            targets.append((Q * np.maximum(w, 0.0)) @ Q.T - Gsym)
+            targets.append(psd_project(Gsym, 0.0)[0] - Gsym)
         rows.append(L[starts[name]])
     if rows:
         LS = np.vstack(rows)
@@ -342,7 +342,7 @@ def _mass_stationarity(theta, L, W, r):
     A = MiR @ L[:r].T
     G = A + A.T - MiR @ MiR.T
     w, Q = np.linalg.eigh(0.5 * (M + M.T))
-    S = (Q * np.sqrt(w)) @ Q.T
+    S = from_eig(np.sqrt(w), Q)
     Gt, Wt = S @ (0.5 * (G + G.T)) @ S, S @ W @ S
     nu = float(np.sum(Gt * Wt) / np.sum(Wt * Wt))
     f = float(np.sum(R * MiR))
