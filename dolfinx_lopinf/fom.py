@@ -1,6 +1,12 @@
 """Run the full-order model in time and record what the scene needs.
 
-``run`` integrates a :class:`LagrangianSystem` from (q0, v0) with the midpoint variational
+One time loop, :func:`run_loop` (also reached as ``run(integrator, n_steps, sinks=...)``),
+steps any :class:`~dolfinx_lopinf.integrators.Integrator` (midpoint, Newmark) and hands every
+step to pluggable sinks: :class:`StateRecorder`, :class:`OutputProbe`, :class:`EnergyProbe`,
+:class:`FieldSnapshots`, :class:`Every` (e.g. a :class:`~dolfinx_lopinf.streaming.StreamingPOD`),
+:class:`CheckpointSink`, :class:`Progress`.
+
+``run(system, q0, v0, dt, t_end, ...)`` integrates a :class:`LagrangianSystem` from (q0, v0) with the midpoint variational
 integrator and returns :class:`~dolfinx_lopinf.snapshots.Snapshots`: states (and velocities,
 energies) every ``record_every`` steps up to ``state_until``, outputs y = E q every
 ``record_every`` steps up to ``t_end``. States are recorded in *state coordinates*
@@ -313,7 +319,7 @@ def _fingerprint(stepper, settings: dict, output_matrix, probe_times) -> dict:
         fp["mass and momentum dL/dq_t at a probe state"] = assembled(stepper._momentum_at)
         fp["energy at a probe state"] = [float(comm.allreduce(
             dolfinx.fem.assemble_scalar(stepper._energy)))]
-        for i, t in enumerate(probe_times):
+        for t in probe_times:
             stepper._set_time(t)
             tag = f" (t = {t:.6g})" if system.time is not None else ""
             fp[f"step residual at a probe state{tag} (stiffness, potential, forcing)"] = \
@@ -435,64 +441,322 @@ def _resume(files: _CheckpointFiles, comm, fingerprint: dict, n_global: int):
     return head, chunks
 
 
-# -- the FOM run ----------------------------------------------------------------------------
+# -- the time loop ---------------------------------------------------------------------------
+#
+# One loop for every integrator (dolfinx_lopinf.integrators.Integrator: midpoint, linear or
+# Newton, and Newmark): it steps and hands each step to its sinks, which record what the scene
+# needs (states, outputs, energies, streaming POD, fields, checkpoints, a progress bar).
 
-def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_every: int = 1,
-        state_until: float | None = None, output_matrix: np.ndarray | None = None,
-        state_map: StateMap | None = None, record_velocity: bool = True,
-        energy_every: int | None = None, energy_until: float | None = None, progress: bool = True,
-        integrator: MidpointIntegrator | None = None, checkpoint: str | Path | None = None,
-        checkpoint_every: int = 1000, checkpoint_restart: bool = False
-        ) -> tuple[Snapshots | None, dict]:
-    """Integrate the FOM and record snapshots.
 
-    Every argument is checked before the first step (all ranks reach the same verdict);
-    bad values raise :class:`~dolfinx_lopinf.errors.InputError` naming the argument.
+class LoopState:
+    """What a sink sees at step ``k`` of :func:`run_loop`: the integrator, the step number,
+    and the velocity and energy at this step (each computed once, on first request, and
+    shared by every sink)."""
+
+    def __init__(self, integrator, n_steps: int, comm):
+        self.integrator, self.n_steps, self.comm = integrator, int(n_steps), comm
+        self.k = 0
+        self.t_loop_start = time.perf_counter()
+        self._v = None
+        self._v_step = self._e_step = -1
+        self._e = None
+
+    @property
+    def t(self) -> float:
+        return self.integrator.t
+
+    @property
+    def q(self):
+        return self.integrator.q
+
+    def velocity(self):
+        """The velocity at this step (a Function owned by the loop state; do not keep it)."""
+        if self._v_step != self.k:
+            if self._v is None:
+                self._v = dolfinx.fem.Function(self.integrator.q.function_space)
+            self.integrator.velocity(self._v)
+            self._v_step = self.k
+        return self._v
+
+    def energy(self) -> float:
+        """The integrator's energy at this step (collective)."""
+        if self._e_step != self.k:
+            self._e = self.integrator.energy(self.velocity())
+            self._e_step = self.k
+        return self._e
+
+
+class Sink:
+    """A sink of the time loop: :meth:`start` at step 0 (the initial state), :meth:`after`
+    after every step, :meth:`finish` once the loop ends. Override what you need; by default
+    :meth:`start` does what :meth:`after` does."""
+
+    def start(self, s: LoopState) -> None:
+        self.after(s)
+
+    def after(self, s: LoopState) -> None:
+        pass
+
+    def finish(self, s: LoopState) -> None:
+        pass
+
+
+class Every(Sink):
+    """Call ``fn(state)`` at every ``every``-th step k (k = 0 included) up to ``until_step``,
+    or exactly at ``steps`` when given."""
+
+    def __init__(self, fn, *, every: int = 1, until_step: int | None = None, steps=None):
+        self.fn, self.every, self.until_step = fn, _count(every, "every", 1), until_step
+        self.steps = None if steps is None else set(int(k) for k in steps)
+
+    def after(self, s):
+        if self.steps is not None:
+            if s.k in self.steps:
+                self.fn(s)
+        elif s.k % self.every == 0 and (self.until_step is None or s.k <= self.until_step):
+            self.fn(s)
+
+
+class OutputProbe(Sink):
+    """y = sum over ranks of E q_local every ``every`` steps (``values``: list of (p,) arrays,
+    ``times``: their times)."""
+
+    def __init__(self, output_matrix, *, every: int = 1):
+        self.E, self.every = output_matrix, every
+        self.values, self.times = [], []
+
+    def after(self, s):
+        if s.k % self.every == 0:
+            self.values.append(s.comm.allreduce(self.E @ s.q.x.array))
+            self.times.append(s.t)
+
+
+class EnergyProbe(Sink):
+    """The integrator's energy every ``every`` steps (``values``, ``times``)."""
+
+    def __init__(self, *, every: int = 1):
+        self.every = every
+        self.values, self.times = [], []
+
+    def after(self, s):
+        if s.k % self.every == 0:
+            self.values.append(s.energy())
+            self.times.append(s.t)
+
+
+class FieldSnapshots(Sink):
+    """Copies of the local dof array (owned + ghosts) at the given steps: ``fields[k]``."""
+
+    def __init__(self, steps):
+        self.steps = set(int(k) for k in steps)
+        self.fields = {}
+
+    def after(self, s):
+        if s.k in self.steps:
+            self.fields[s.k] = s.q.x.array.copy()
+
+
+class Progress(Sink):
+    """A tqdm bar on rank 0 (updated every ``every`` steps)."""
+
+    def __init__(self, *, every: int = 1000, desc: str = "FOM"):
+        self.every, self.desc, self.bar, self._shown = every, desc, None, 0
+
+    def _open(self, s):
+        if self.bar is None and s.comm.rank == 0:
+            from tqdm.auto import tqdm
+            self.bar = tqdm(total=s.n_steps, desc=self.desc, unit="step", mininterval=0.5,
+                            leave=False)
+            if s.k:
+                self.bar.update(s.k)
+                self._shown = s.k
+
+    def start(self, s):
+        self._open(s)
+
+    def after(self, s):
+        self._open(s)
+        if self.bar is not None and s.k % self.every == 0:
+            self.bar.update(s.k - self._shown)
+            self._shown = s.k
+
+    def finish(self, s):
+        if self.bar is not None:
+            self.bar.close()
+
+
+class StateRecorder(Sink):
+    """The FOM recorder of :func:`run`: owned states (and velocities) every ``record_every``
+    steps up to ``state_steps``, the energy every ``energy_every`` recorded samples up to
+    ``energy_steps``."""
+
+    def __init__(self, n_owned: int, *, record_every: int, state_steps: int, energy_steps: int,
+                 energy_every: int, record_velocity: bool):
+        self.record_every, self.state_steps, self.energy_steps = record_every, state_steps, energy_steps
+        self.energy_every, self.n_owned = energy_every, n_owned
+        n_rec = state_steps // record_every + 1
+        self.Q = np.empty((n_owned, n_rec))
+        self.Vel = np.empty((n_owned, n_rec)) if record_velocity else None
+        self.energies, self.energy_times = [], []
+        self.filled = 0  # state columns recorded so far
+        self.seconds_states = 0.0
+
+    def _record(self, s, j):
+        n = self.n_owned
+        self.Q[:, j] = s.q.x.array[:n]
+        if self.Vel is not None:
+            self.Vel[:, j] = s.velocity().x.array[:n]
+        if self.energy_every and j % self.energy_every == 0:
+            self.energies.append(s.energy())
+            self.energy_times.append(s.t)
+        self.filled = j + 1
+
+    def start(self, s):
+        self._record(s, 0)
+
+    def after(self, s):
+        k = s.k
+        if k % self.record_every:
+            return
+        j = k // self.record_every
+        if k <= self.state_steps:
+            self._record(s, j)
+            if k == self.state_steps:
+                self.seconds_states = time.perf_counter() - s.t_loop_start
+        elif k <= self.energy_steps and self.energy_every and j % self.energy_every == 0:
+            self.energies.append(s.energy())
+            self.energy_times.append(s.t)
+
+
+class CheckpointSink(Sink):
+    """Every ``every`` steps (not at the last one) append what ``recorder`` and ``probe``
+    recorded since the previous checkpoint to a chunk file and write the integrator state to
+    a head file (each atomically); see the format notes above :func:`_crc`."""
+
+    def __init__(self, files: _CheckpointFiles, fingerprint: dict, recorder: StateRecorder,
+                 probe: OutputProbe | None, *, every: int):
+        self.files, self.fingerprint, self.every = files, fingerprint, every
+        self.recorder, self.probe = recorder, probe
+        self.j = self.ne = self.ny = 0
+        self.crc, self.bytes, self.seconds = [], 0, 0.0
+
+    def after(self, s):
+        if s.k % self.every == 0 and s.k < s.n_steps:
+            self.save(s)
+
+    def save(self, s):
+        t_save = time.perf_counter()
+        rec, probe, it = self.recorder, self.probe, s.integrator
+        c = len(self.crc)
+        p_out = probe.E.shape[0] if probe is not None else 0
+        ys = probe.values if probe is not None else []
+        y_times = probe.times if probe is not None else []
+        chunk = {"Q": rec.Q[:, self.j:rec.filled],
+                 "Vel": rec.Vel[:, self.j:rec.filled] if rec.Vel is not None else np.zeros((0, 0)),
+                 "energies": np.array(rec.energies[self.ne:], dtype=float),
+                 "energy_times": np.array(rec.energy_times[self.ne:], dtype=float),
+                 "ys": (np.array(ys[self.ny:], dtype=float).reshape(-1, p_out) if p_out
+                        else np.zeros((0, 0))),
+                 "y_times": np.array(y_times[self.ny:], dtype=float)}
+        atomic_savez(self.files.chunk(c), **chunk)
+        crcs = self.crc + [_crc(chunk)]
+        head = self.files.heads[len(crcs) % 2]
+        atomic_savez(head, format=np.array(_FORMAT),
+                     fingerprint=np.array(json.dumps(self.fingerprint)), k=np.array(s.k),
+                     q=it.q.x.array, p=it.p.array, t=np.array(it.t),
+                     n_chunks=np.array(len(crcs)), chunk_crc=np.array(crcs, dtype=np.int64),
+                     filled=np.array(rec.filled))
+        self.j, self.ne, self.ny, self.crc = rec.filled, len(rec.energies), len(ys), crcs
+        self.bytes += self.files.chunk(c).stat().st_size + head.stat().st_size
+        self.seconds += time.perf_counter() - t_save
+
+    def restore(self, integrator, head, chunks) -> int:
+        """Put a resumed checkpoint back into the integrator, recorder and probe; return the
+        first step still to take."""
+        rec, probe = self.recorder, self.probe
+        k_start = int(head["k"]) + 1
+        integrator.q.x.array[:] = head["q"]
+        integrator.p.array[:] = head["p"]
+        integrator.t = float(head["t"])
+        integrator.steps_taken = k_start - 1
+        j0 = 0
+        for data in chunks:
+            j1 = j0 + data["Q"].shape[1]
+            rec.Q[:, j0:j1] = data["Q"]
+            if rec.Vel is not None:
+                rec.Vel[:, j0:j1] = data["Vel"]
+            j0 = j1
+            rec.energies.extend(data["energies"].tolist())
+            rec.energy_times.extend(data["energy_times"].tolist())
+            if probe is not None:
+                probe.values.extend(list(data["ys"]))
+                probe.times.extend(data["y_times"].tolist())
+        rec.filled = j0
+        self.j, self.ne = rec.filled, len(rec.energies)
+        self.ny = len(probe.values) if probe is not None else 0
+        self.crc = [int(c) for c in head["chunk_crc"]]
+        return k_start
+
+    def finish(self, s):
+        self.files.remove_all()
+
+
+def run_loop(integrator, n_steps: int, sinks=(), *, inputs=None, first_step: int = 1) -> dict:
+    """The time loop: ``n_steps`` steps of ``integrator`` (any
+    :class:`~dolfinx_lopinf.integrators.Integrator`, already initialised), each handed to the
+    ``sinks`` in order.
 
     Args:
-        system: the Lagrangian system.
-        q0, v0: initial configuration and velocity (Functions on the system's space or local
-            dof arrays, owned + ghosts). Values that violate the (homogeneous) Dirichlet
-            conditions are set to 0 on the constrained dofs, with an
-            :class:`~dolfinx_lopinf.errors.InputCorrectedWarning` saying by how much.
-        dt, t_end: time step and final time (t_end / dt steps, must be a whole number).
-        record_every: keep every ``record_every``-th step (1 <= record_every <= steps).
-        state_until: record full states only while t <= state_until (default t_end; at least
-            two samples, at most t_end); outputs are recorded to t_end.
-        output_matrix: (p, n_local) from :func:`point_output_matrix` (or any local linear
-            output); y = allreduce(E q_local).
-        state_map: dof -> state coordinates (default: ordered by dof coordinates, so the
-            result does not depend on the number of ranks).
-        record_velocity: also record velocities (one mass solve per recorded step).
-        energy_until: keep recording the energy (every ``energy_every`` samples) up to this
-            time, past ``state_until`` (default: ``state_until``; at most t_end).
-        energy_every: record the FOM energy every that many recorded samples (default: each
-            recorded state sample; 0 disables).
-        progress: show a tqdm progress bar on rank 0.
-        integrator: reuse an existing integrator of ``system`` (its dt must match).
-        checkpoint: a path prefix in an existing directory; every ``checkpoint_every`` steps
-            each rank appends what it recorded since the last checkpoint to
-            ``<prefix>.rank<i>.part<c>.npz`` and writes its integrator state to
-            ``<prefix>.rank<i>.npz`` / ``.b.npz`` (alternately), each file atomically. When
-            ``run`` starts and such files exist, it resumes from the newest step every rank
-            has - only if the checkpoint's fingerprint (initial state, assembled forms at
-            probe states, forcing, bcs, dt, t_end, record settings, output matrix, scheme,
-            ranks) equals this run's; otherwise it raises
-            :class:`~dolfinx_lopinf.errors.CheckpointMismatchError` naming what differs.
-            A truncated or corrupt file raises :class:`~dolfinx_lopinf.errors.FileFormatError`
-            naming it. The result of a resumed run equals an unbroken run's bit for bit. The
-            files are removed when the run completes.
-        checkpoint_every: steps between checkpoints (>= 1).
-        checkpoint_restart: discard any existing checkpoint under ``checkpoint`` and start
-            from step 0.
+        integrator: midpoint (linear or Newton) or Newmark integrator, initialised.
+        n_steps: steps to take.
+        sinks: :class:`Sink` objects (``StateRecorder``, ``OutputProbe``, ``EnergyProbe``,
+            ``Every`` - e.g. ``StreamingPOD.sink()`` -, ``FieldSnapshots``,
+            ``CheckpointSink``, ``Progress``), or plain callables ``f(state)`` called at
+            every step including step 0.
+        inputs: ``inputs(t) -> values`` at the new time t_k = t_0 + k dt, passed to
+            ``integrator.step`` (schemes with input channels, e.g. Newmark); None: no inputs.
+        first_step: 1 for a fresh run (the sinks' ``start`` sees step 0); k > 1 to continue
+            a run restored to step k - 1 (``start`` is skipped).
 
     Returns:
-        ``(snapshots, info)``: Snapshots on rank 0 (None elsewhere); info has ``seconds``
-        (wall time of the time loop), ``steps``, ``energy_drift`` (max |E - E0| / |E0| over
-        the recorded energies), ``resumed_from_step``, ``checkpoint_bytes`` (bytes this rank
-        wrote to checkpoint files) and ``checkpoint_seconds`` (time spent writing them).
+        ``{"seconds": wall time of the loop (max over ranks), "steps": n_steps}``.
     """
-    # -- every input checked before any work ------------------------------------------------
+    for name in ("step", "velocity", "energy", "dt", "q"):
+        if not hasattr(integrator, name):
+            raise InputError(f"run needs an Integrator (midpoint or Newmark, see "
+                             f"dolfinx_lopinf.integrators) or a LagrangianSystem, got "
+                             f"{type(integrator).__name__} (no '{name}')")
+    n_steps = _count(n_steps, "n_steps", 0)
+    first_step = _count(first_step, "first_step", 1)
+    sinks = [s if isinstance(s, Sink) else Every(s) for s in sinks]
+    comm = integrator.q.function_space.mesh.comm
+    state = LoopState(integrator, n_steps, comm)
+    dt = integrator.dt
+    t_begin = integrator.t - (first_step - 1) * dt
+    state.k = first_step - 1
+    if first_step == 1:
+        for sink in sinks:
+            sink.start(state)
+    for k in range(first_step, n_steps + 1):
+        if inputs is None:
+            integrator.step()
+        else:
+            integrator.step(inputs(t_begin + k * dt))
+        state.k = k
+        for sink in sinks:
+            sink.after(state)
+    seconds = comm.allreduce(time.perf_counter() - state.t_loop_start, op=MPI.MAX)
+    for sink in sinks:
+        sink.finish(state)
+    return {"seconds": seconds, "steps": n_steps}
+
+
+# -- the FOM run of a LagrangianSystem: the time loop with the recorder's sinks -------------
+
+def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map, energy_every,
+          energy_until, integrator, checkpoint, checkpoint_every) -> dict:
+    """Every input of :func:`run` checked before any work (all ranks reach the same verdict);
+    returns the derived step counts and sizes."""
     if not isinstance(system, LagrangianSystem):
         raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
     dt = _check_dt(dt)
@@ -571,152 +835,151 @@ def run(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_eve
         _collective(comm, problem)
         files = _CheckpointFiles(prefix, comm.rank)
 
-    # -- set-up ------------------------------------------------------------------------------
-    state_map = StateMap.from_coordinates(V) if state_map is None else state_map
-    stepper = integrator if integrator is not None else MidpointIntegrator(system, dt)
+    return dict(dt=dt, t_end=t_end, n_steps=n_steps, record_every=record_every,
+                n_state_steps=n_state_steps, n_energy_steps=n_energy_steps,
+                energy_every=energy_every, n_owned=n_owned, n_global=n_global, files=files,
+                checkpoint_every=checkpoint_every)
+
+
+def run(system, *args, **kwargs):
+    """Two forms of one time loop.
+
+    * ``run(integrator, n_steps, sinks=[...], inputs=None)`` - :func:`run_loop`: step any
+      :class:`~dolfinx_lopinf.integrators.Integrator` and feed the sinks.
+    * ``run(system, q0, v0, dt, t_end, ...)`` - :func:`run_system`: the midpoint FOM of a
+      :class:`LagrangianSystem` with its recorder, output and checkpoint sinks, returning
+      ``(Snapshots, info)``.
+    """
+    if isinstance(system, LagrangianSystem):
+        return run_system(system, *args, **kwargs)
+    return run_loop(system, *args, **kwargs)
+
+
+def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, record_every: int = 1,
+               state_until: float | None = None, output_matrix: np.ndarray | None = None,
+               state_map: StateMap | None = None, record_velocity: bool = True,
+               energy_every: int | None = None, energy_until: float | None = None,
+               progress: bool = True, integrator: MidpointIntegrator | None = None,
+               checkpoint: str | Path | None = None, checkpoint_every: int = 1000,
+               checkpoint_restart: bool = False) -> tuple[Snapshots | None, dict]:
+    """Integrate the FOM and record snapshots.
+
+    Every argument is checked before the first step (all ranks reach the same verdict);
+    bad values raise :class:`~dolfinx_lopinf.errors.InputError` naming the argument.
+
+    Args:
+        system: the Lagrangian system.
+        q0, v0: initial configuration and velocity (Functions on the system's space or local
+            dof arrays, owned + ghosts). Values that violate the (homogeneous) Dirichlet
+            conditions are set to 0 on the constrained dofs, with an
+            :class:`~dolfinx_lopinf.errors.InputCorrectedWarning` saying by how much.
+        dt, t_end: time step and final time (t_end / dt steps, must be a whole number).
+        record_every: keep every ``record_every``-th step (1 <= record_every <= steps).
+        state_until: record full states only while t <= state_until (default t_end; at least
+            two samples, at most t_end); outputs are recorded to t_end.
+        output_matrix: (p, n_local) from :func:`point_output_matrix` (or any local linear
+            output); y = allreduce(E q_local).
+        state_map: dof -> state coordinates (default: ordered by dof coordinates, so the
+            result does not depend on the number of ranks).
+        record_velocity: also record velocities (one mass solve per recorded step).
+        energy_until: keep recording the energy (every ``energy_every`` samples) up to this
+            time, past ``state_until`` (default: ``state_until``; at most t_end).
+        energy_every: record the FOM energy every that many recorded samples (default: each
+            recorded state sample; 0 disables).
+        progress: show a tqdm progress bar on rank 0.
+        integrator: reuse an existing integrator of ``system`` (its dt must match; it is
+            left open). Without it, ``run`` makes one and closes it at the end.
+        checkpoint: a path prefix in an existing directory; every ``checkpoint_every`` steps
+            each rank appends what it recorded since the last checkpoint to
+            ``<prefix>.rank<i>.part<c>.npz`` and writes its integrator state to
+            ``<prefix>.rank<i>.npz`` / ``.b.npz`` (alternately), each file atomically. When
+            ``run`` starts and such files exist, it resumes from the newest step every rank
+            has - only if the checkpoint's fingerprint (initial state, assembled forms at
+            probe states, forcing, bcs, dt, t_end, record settings, output matrix, scheme,
+            ranks) equals this run's; otherwise it raises
+            :class:`~dolfinx_lopinf.errors.CheckpointMismatchError` naming what differs.
+            A truncated or corrupt file raises :class:`~dolfinx_lopinf.errors.FileFormatError`
+            naming it. The result of a resumed run equals an unbroken run's bit for bit. The
+            files are removed when the run completes.
+        checkpoint_every: steps between checkpoints (>= 1).
+        checkpoint_restart: discard any existing checkpoint under ``checkpoint`` and start
+            from step 0.
+
+    Returns:
+        ``(snapshots, info)``: Snapshots on rank 0 (None elsewhere); info has ``seconds``
+        (wall time of the time loop), ``steps``, ``energy_drift`` (max |E - E0| / |E0| over
+        the recorded energies), ``resumed_from_step``, ``checkpoint_bytes`` (bytes this rank
+        wrote to checkpoint files) and ``checkpoint_seconds`` (time spent writing them).
+    """
+    plan = _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map,
+                 energy_every, energy_until, integrator, checkpoint, checkpoint_every)
+    state_map = StateMap.from_coordinates(system.V) if state_map is None else state_map
+    stepper = integrator if integrator is not None else MidpointIntegrator(system, plan["dt"])
+    try:
+        return _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map,
+                             record_velocity, progress, checkpoint_restart)
+    finally:
+        if integrator is None:
+            stepper.close()
+
+
+def _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map, record_velocity,
+                  progress, checkpoint_restart):
+    """:func:`run_system` after the checks: the sinks, the resume, the loop, the gather."""
+    V, comm = system.V, system.V.mesh.comm
+    dt, n_steps, files = plan["dt"], plan["n_steps"], plan["files"]
+    record_every, energy_every = plan["record_every"], plan["energy_every"]
     fingerprint = None
     if files is not None:
-        settings = {"dt": repr(dt), "t_end": repr(t_end), "steps": n_steps,
-                    "record_every": record_every, "state steps": n_state_steps,
-                    "energy steps": n_energy_steps, "energy_every": energy_every,
+        settings = {"dt": repr(dt), "t_end": repr(plan["t_end"]), "steps": n_steps,
+                    "record_every": record_every, "state steps": plan["n_state_steps"],
+                    "energy steps": plan["n_energy_steps"], "energy_every": energy_every,
                     "record_velocity": bool(record_velocity), "ranks": comm.size,
-                    "global dofs": n_global, "owned dofs on this rank": n_owned,
+                    "global dofs": plan["n_global"], "owned dofs on this rank": plan["n_owned"],
                     "scheme": f"midpoint variational ({'linear' if stepper._linear else 'Newton'})"}
         fingerprint = _fingerprint(stepper, settings, output_matrix,
-                                   (0.5 * dt, 0.6180339887 * t_end + 0.5 * dt))
+                                   (0.5 * dt, 0.6180339887 * plan["t_end"] + 0.5 * dt))
     stepper.initialize(q0, v0)
     if fingerprint is not None:
         _add_state_sketches(fingerprint, stepper)
-    n_rec = n_state_steps // record_every + 1
-    Q = np.empty((n_owned, n_rec))
-    Vel = np.empty((n_owned, n_rec)) if record_velocity else None
-    energies, energy_times = [], []
-    ys, y_times = [], []
-    v = dolfinx.fem.Function(V)
-    filled = 0  # state columns recorded so far
-    k_start = 1
-    saved = {"j": 0, "ne": 0, "ny": 0, "crc": [], "bytes": 0, "seconds": 0.0}
-
-    def save_checkpoint(k):
-        t_save = time.perf_counter()
-        c = len(saved["crc"])
-        p_out = output_matrix.shape[0] if output_matrix is not None else 0
-        chunk = {"Q": Q[:, saved["j"]:filled],
-                 "Vel": Vel[:, saved["j"]:filled] if Vel is not None else np.zeros((0, 0)),
-                 "energies": np.array(energies[saved["ne"]:], dtype=float),
-                 "energy_times": np.array(energy_times[saved["ne"]:], dtype=float),
-                 "ys": (np.array(ys[saved["ny"]:], dtype=float).reshape(-1, p_out) if p_out
-                        else np.zeros((0, 0))),
-                 "y_times": np.array(y_times[saved["ny"]:], dtype=float)}
-        atomic_savez(files.chunk(c), **chunk)
-        crcs = saved["crc"] + [_crc(chunk)]
-        head = files.heads[len(crcs) % 2]
-        atomic_savez(head, format=np.array(_FORMAT), fingerprint=np.array(json.dumps(fingerprint)),
-                      k=np.array(k), q=stepper.q.x.array, p=stepper.p.array, t=np.array(stepper.t),
-                      n_chunks=np.array(len(crcs)), chunk_crc=np.array(crcs, dtype=np.int64),
-                      filled=np.array(filled))
-        saved.update(j=filled, ne=len(energies), ny=len(ys), crc=crcs)
-        saved["bytes"] += files.chunk(c).stat().st_size + head.stat().st_size
-        saved["seconds"] += time.perf_counter() - t_save
-
-    def record(j):
-        nonlocal filled
-        Q[:, j] = stepper.q.x.array[:n_owned]
-        need_v = record_velocity or (energy_every and j % energy_every == 0)
-        if need_v:
-            stepper.velocity(v)
-            if record_velocity:
-                Vel[:, j] = v.x.array[:n_owned]
-        if energy_every and j % energy_every == 0:
-            energies.append(stepper.energy(v))
-            energy_times.append(stepper.t)
-        filled = j + 1
-
-    def record_energy():
-        stepper.velocity(v)
-        energies.append(stepper.energy(v))
-        energy_times.append(stepper.t)
-
-    def record_output():
-        if output_matrix is not None:
-            ys.append(comm.allreduce(output_matrix @ stepper.q.x.array))
-            y_times.append(stepper.t)
-
-    resumed = None
+    recorder = StateRecorder(plan["n_owned"], record_every=record_every,
+                             state_steps=plan["n_state_steps"], energy_steps=plan["n_energy_steps"],
+                             energy_every=energy_every, record_velocity=record_velocity)
+    probe = OutputProbe(output_matrix, every=record_every) if output_matrix is not None else None
+    sinks = [recorder] + ([probe] if probe is not None else [])
+    if progress:
+        sinks.append(Progress())
+    first_step, checkpointer = 1, None
     if files is not None:
+        checkpointer = CheckpointSink(files, fingerprint, recorder, probe,
+                                      every=plan["checkpoint_every"])
+        sinks.append(checkpointer)
         if checkpoint_restart:
             files.remove_all()
         else:
-            resumed = _resume(files, comm, fingerprint, n_global)
+            resumed = _resume(files, comm, fingerprint, plan["n_global"])
             if resumed is None:
                 files.remove_all()  # stray chunks of a run that never wrote a head
-    bar = None
-    if progress and comm.rank == 0:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=n_steps, desc="FOM", unit="step", mininterval=0.5, leave=False)
-    t0 = time.perf_counter()
-    seconds_states = 0.0
-    if resumed is not None:
-        head, chunks = resumed
-        k_start = int(head["k"]) + 1
-        stepper.q.x.array[:] = head["q"]
-        stepper.p.array[:] = head["p"]
-        stepper.t = float(head["t"])
-        stepper.steps_taken = k_start - 1
-        j0 = 0
-        for data in chunks:
-            j1 = j0 + data["Q"].shape[1]
-            Q[:, j0:j1] = data["Q"]
-            if Vel is not None:
-                Vel[:, j0:j1] = data["Vel"]
-            j0 = j1
-            energies.extend(data["energies"].tolist())
-            energy_times.extend(data["energy_times"].tolist())
-            ys.extend(list(data["ys"]))
-            y_times.extend(data["y_times"].tolist())
-        filled = j0
-        saved.update(j=filled, ne=len(energies), ny=len(ys),
-                     crc=[int(c) for c in head["chunk_crc"]])
-        if bar is not None:
-            bar.update(k_start - 1)
-    else:
-        record(0)
-        record_output()
-    for k in range(k_start, n_steps + 1):
-        stepper.step()
-        if k % record_every == 0:
-            j = k // record_every
-            if k <= n_state_steps:
-                record(j)
-                if k == n_state_steps:
-                    seconds_states = time.perf_counter() - t0
-            elif k <= n_energy_steps and energy_every and j % energy_every == 0:
-                record_energy()
-            record_output()
-        if bar is not None and k % 1000 == 0:
-            bar.update(1000)
-        if files is not None and k % checkpoint_every == 0 and k < n_steps:
-            save_checkpoint(k)
-    seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
-    if bar is not None:
-        bar.close()
-    if files is not None:
-        files.remove_all()
-    energies = np.array(energies)
+            else:
+                first_step = checkpointer.restore(stepper, *resumed)
+    loop = run_loop(stepper, n_steps, sinks, first_step=first_step)
+    energies = np.array(recorder.energies)
     drift = float(np.max(np.abs(energies - energies[0])) / abs(energies[0])) if len(energies) > 1 \
         and energies[0] != 0 else float("nan")
-    info = {"seconds": seconds, "steps": n_steps, "energy_drift": drift,
-            "resumed_from_step": k_start - 1,
-            "seconds_to_state_until": comm.allreduce(seconds_states, op=MPI.MAX),
-            "energy": energies, "energy_times": np.array(energy_times),
-            "checkpoint_bytes": saved["bytes"], "checkpoint_seconds": saved["seconds"]}
-    Qg = gather_states(V, Q, state_map)
-    Vg = gather_states(V, Vel, state_map) if record_velocity else None
+    info = {"seconds": loop["seconds"], "steps": n_steps, "energy_drift": drift,
+            "resumed_from_step": first_step - 1,
+            "seconds_to_state_until": comm.allreduce(recorder.seconds_states, op=MPI.MAX),
+            "energy": energies, "energy_times": np.array(recorder.energy_times),
+            "checkpoint_bytes": checkpointer.bytes if checkpointer else 0,
+            "checkpoint_seconds": checkpointer.seconds if checkpointer else 0.0}
+    Qg = gather_states(V, recorder.Q, state_map)
+    Vg = gather_states(V, recorder.Vel, state_map) if record_velocity else None
     if comm.rank != 0:
         return None, info
-    times = dt * record_every * np.arange(n_rec)
+    times = dt * record_every * np.arange(recorder.Q.shape[1])
     energy_full = energies if energy_every == 1 else None
+    ys = probe.values if probe is not None else []
     Y = np.array(ys).T if ys else None
     snaps = Snapshots(times=times, Q=Qg, blocks=state_map.blocks, V=Vg, energy=energy_full,
-                      Y=Y, output_times=np.array(y_times) if ys else None)
+                      Y=Y, output_times=np.array(probe.times) if ys else None)
     return snaps, info

@@ -17,11 +17,21 @@ over a few thousand steps; the assembled residual keeps it at ~1e-14).
 
 Velocities come from the discrete Legendre transform: M v = p - dL/dq_t(q, 0).
 Only homogeneous Dirichlet conditions are supported (checked).
+
+Both integrators here (:class:`MidpointIntegrator`, :class:`NewmarkIntegrator`) follow one
+protocol, :class:`Integrator`: ``step(u=None) -> q``, ``velocity()``, ``energy()``, ``dt``,
+``t``, ``q``, ``scheme`` and ``close()`` (also a context manager). The one time loop,
+:func:`dolfinx_lopinf.fom.run`, drives any of them. PETSc options go into the global options
+database under a prefix unique to the integrator (``lopinf_<scheme>_<n>_`` unless you pass
+one) and are removed once the solver has read them, as DOLFINx's ``LinearProblem`` does;
+``close()`` destroys the PETSc objects.
 """
 
 from __future__ import annotations
 
+import itertools
 import warnings
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -33,9 +43,81 @@ fem = dolfinx.fem
 fpetsc = dolfinx.fem.petsc
 
 
+_PREFIX_COUNTER = itertools.count()
+
+
+def _unique_prefix(scheme: str) -> str:
+    """A PETSc options prefix no other integrator of this process uses."""
+    return f"lopinf_{scheme}_{next(_PREFIX_COUNTER)}_"
+
+
+def _push_options(prefix: str, options: dict) -> list[str]:
+    """Write ``options`` under ``prefix`` into the global database; return the keys written
+    (for :func:`_pop_options`)."""
+    opts = PETSc.Options()
+    for key, value in options.items():
+        opts[f"{prefix}{key}"] = value
+    return [f"{prefix}{key}" for key in options]
+
+
+def _pop_options(keys) -> None:
+    """Remove keys written by :func:`_push_options` (those already gone are skipped)."""
+    opts = PETSc.Options()
+    for key in keys:
+        if opts.hasName(key):
+            opts.delValue(key)
+
+
+def _destroy(*objects) -> None:
+    for obj in objects:
+        if obj is not None:
+            obj.destroy()
+
+
+@runtime_checkable
+class Integrator(Protocol):
+    """What the time loop (:func:`dolfinx_lopinf.fom.run`) needs of an integrator.
+
+    Attributes:
+        scheme: ``"midpoint"`` or ``"newmark"`` (the data relation the snapshots obey).
+        dt: time step.
+        t: current time.
+        q: the current configuration (a dolfinx Function; owned + ghost dofs up to date).
+    """
+
+    scheme: str
+    dt: float
+    t: float
+    q: "fem.Function"
+
+    def step(self, u=None) -> "fem.Function":
+        """Advance one step (``u``: input values at the new time, if the scheme takes any);
+        return :attr:`q`."""
+
+    def velocity(self, out=None) -> "fem.Function":
+        """The velocity at the current time."""
+
+    def energy(self, v=None) -> float:
+        """The mechanical energy at the current time (``v``: the velocity, if at hand)."""
+
+    def close(self) -> None:
+        """Destroy the PETSc objects (the integrator is unusable afterwards)."""
+
+
+class _Closing:
+    """Context-manager support: ``with Integrator(...) as it: ...`` closes on exit."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 def _direct_solver(A, comm, prefix: str, options: dict | None, *, spd: bool = False):
     """KSP with a direct factorisation: MUMPS when PETSc has it, PETSc's own otherwise.
-    ``spd``: A is symmetric positive definite - Cholesky (LDL^T, half the memory of LU)."""
+    ``spd``: A is symmetric positive definite - Cholesky (LDL^T, half the memory of LU).
+    The options are removed from the global database once the factorisation has read them."""
     ksp = PETSc.KSP().create(comm)
     if spd:
         A.setOption(PETSc.Mat.Option.SPD, True)
@@ -45,17 +127,18 @@ def _direct_solver(A, comm, prefix: str, options: dict | None, *, spd: bool = Fa
     pc = ksp.getPC()
     pc.setType("cholesky" if spd else "lu")
     pc.setFactorSolverType("mumps")
-    opts = PETSc.Options()
-    for key, value in (options or {}).items():
-        opts[f"{prefix}{key}"] = value
-    ksp.setFromOptions()
+    keys = _push_options(prefix, options or {})
     try:
-        ksp.setUp()
-    except PETSc.Error:  # pragma: no cover - a PETSc built without MUMPS
-        if comm.size > 1:
-            raise
-        pc.setFactorSolverType("petsc")
-        ksp.setUp()
+        ksp.setFromOptions()
+        try:
+            ksp.setUp()
+        except PETSc.Error:  # pragma: no cover - a PETSc built without MUMPS
+            if comm.size > 1:
+                raise
+            pc.setFactorSolverType("petsc")
+            ksp.setUp()
+    finally:
+        _pop_options(keys)
     return ksp
 
 
@@ -111,27 +194,33 @@ class StepFailed(RuntimeError):
     """A nonlinear step did not converge; names the step, time and residual."""
 
 
-class MidpointIntegrator:
-    """Midpoint variational integrator for a :class:`LagrangianSystem`.
+class MidpointIntegrator(_Closing):
+    """Midpoint variational integrator for a :class:`LagrangianSystem` (an :class:`Integrator`).
 
     Args:
         system: the Lagrangian system.
         dt: time step.
         petsc_options: extra options for the linear solver (linear case, prefix
             ``<prefix>``) or for SNES (nonlinear case).
-        prefix: mandatory PETSc options prefix (unique per integrator).
+        prefix: PETSc options prefix (default: ``lopinf_midpoint_<n>_``, unique per
+            integrator). The options are removed from the global database once read.
 
     The current state is ``self.q`` (a dolfinx Function), ``self.p`` (a PETSc Vec) and
     ``self.t``. Use :meth:`initialize` then :meth:`step`, or :meth:`advance` as a
-    black box from arbitrary (q, p).
+    black box from arbitrary (q, p); :meth:`close` (or ``with``) destroys the PETSc objects.
     """
 
+    scheme = "midpoint"
+
     def __init__(self, system: LagrangianSystem, dt: float, *, petsc_options: dict | None = None,
-                 prefix: str = "lopinf_midpoint_"):
+                 prefix: str | None = None):
         if not isinstance(system, LagrangianSystem):
             raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
         dt = _check_dt(dt)
+        prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
         self.system, self.dt, self.prefix = system, float(dt), prefix
+        self._snes = self._ksp = None
+        self._pending_options = []
         V, comm = system.V, system.V.mesh.comm
         _check_homogeneous(system.bcs, V)
         self.forms = f = system.step_forms(self.dt)
@@ -192,9 +281,8 @@ class MidpointIntegrator:
         defaults = {"snes_type": "newtonls", "snes_linesearch_type": "none", "snes_rtol": 1e-12,
                     "snes_atol": 1e-12, "snes_stol": 0.0, "snes_max_it": 25, "ksp_type": "preonly",
                     "pc_type": "lu"}
-        opts = PETSc.Options()
-        for key, value in {**defaults, **(options or {})}.items():
-            opts[f"{self.prefix}{key}"] = value
+        # removed after the first step: the inner KSP/PC read some of them only at set-up
+        self._pending_options = _push_options(self.prefix, {**defaults, **(options or {})})
         self._snes.setFromOptions()
         self._p_free = fpetsc.create_vector(V)
 
@@ -281,12 +369,26 @@ class MidpointIntegrator:
         out = self.q.x.array.copy(), self.p.copy()
         self.q.x.array[:] = saved_q
         saved_p.copy(self.p)
+        saved_p.destroy()
         self.t = saved_t
         self.steps_taken -= 1
         return out
 
-    def step(self):
-        """Advance (q, p, t) by one step dt."""
+    def step(self, u=None) -> "fem.Function":
+        """Advance (q, p, t) by one step dt; return ``self.q``. The midpoint scheme takes no
+        input values (``u`` must be None): forcing lives in the system's UFL forms."""
+        if u is not None:
+            raise InputError("MidpointIntegrator.step takes no input values: put the forcing "
+                             "into the LagrangianSystem (forcing=..., time=...)")
+        try:
+            self._step()
+        finally:
+            if self._pending_options:
+                _pop_options(self._pending_options)
+                self._pending_options = []
+        return self.q
+
+    def _step(self):
         f, t_mid = self.forms, self.t + 0.5 * self.dt
         f.q0.x.array[:] = self.q.x.array
         self._set_time(t_mid)
@@ -351,8 +453,22 @@ class MidpointIntegrator:
         local = fem.assemble_scalar(self._energy)
         return float(sysm.V.mesh.comm.allreduce(local))
 
+    def close(self) -> None:
+        """Destroy the PETSc objects and remove any options still in the global database."""
+        _pop_options(self._pending_options)
+        self._pending_options = []
+        _destroy(self._ksp, getattr(self, "_A1", None), getattr(self, "_rhs", None),
+                 getattr(self, "_dq", None), self._snes, getattr(self, "_J", None),
+                 getattr(self, "_b", None), getattr(self, "_x", None),
+                 getattr(self, "_p_free", None), getattr(self, "_mass_ksp", None),
+                 getattr(self, "_mass", None), getattr(self, "_work", None), getattr(self, "p", None))
+        self._ksp = self._snes = self._mass_ksp = self._mass = self.p = None
+        for name in ("_A1", "_rhs", "_dq", "_J", "_b", "_x", "_p_free", "_work"):
+            if hasattr(self, name):
+                setattr(self, name, None)
 
-class NewmarkIntegrator:
+
+class NewmarkIntegrator(_Closing):
     """Newmark average acceleration (gamma = 1/2, beta = 1/4) for a forced, damped linear
     system  M q_tt + C q_t + K q = sum_j b_j u_j(t)  (METHOD.md section 2):
 
@@ -371,11 +487,18 @@ class NewmarkIntegrator:
         input_forms: linear forms b_j(v), one per input channel.
         solver: ``"direct"`` (MUMPS LU of A) or ``"cg"`` (CG + GAMG with ``near_nullspace``).
         near_nullspace: optional PETSc NullSpace (rigid body modes) for GAMG.
+        prefix: PETSc options prefix (default ``lopinf_newmark_<n>_``, unique); the options
+            are removed from the global database once the solver is set up.
+
+    An :class:`Integrator`: :meth:`initialize` (from rest), then :meth:`step` with the input
+    values at the new time; :meth:`close` (or ``with``) destroys the PETSc objects.
     """
+
+    scheme = "newmark"
 
     def __init__(self, system: LagrangianSystem, dt: float, *, rayleigh=(0.0, 0.0),
                  input_forms=(), solver: str = "direct", near_nullspace=None,
-                 prefix: str = "lopinf_newmark_", petsc_options: dict | None = None):
+                 prefix: str | None = None, petsc_options: dict | None = None):
         if not isinstance(system, LagrangianSystem):
             raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
         if not system.is_quadratic:
@@ -395,7 +518,8 @@ class NewmarkIntegrator:
                 raise InputError(f"input_forms[{j}] must be a UFL 1-form whose test function is "
                                  "on the system's space (the space of q)")
         _check_homogeneous(system.bcs, system.V)
-        self.system, self.dt = system, float(dt)
+        prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
+        self.system, self.dt, self.prefix = system, float(dt), prefix
         V, comm = system.V, system.V.mesh.comm
         bcs = list(system.bcs)
         self._bcs = bcs
@@ -422,10 +546,12 @@ class NewmarkIntegrator:
             ksp.setType("cg")
             ksp.getPC().setType("gamg")
             ksp.setTolerances(rtol=1e-10, atol=1e-30, max_it=2000)
-            opts = PETSc.Options()
-            for key, value in (petsc_options or {}).items():
-                opts[f"{prefix}{key}"] = value
-            ksp.setFromOptions()
+            keys = _push_options(prefix, petsc_options or {})
+            try:
+                ksp.setFromOptions()
+                ksp.setUp()  # GAMG reads its level options here: before they are removed
+            finally:
+                _pop_options(keys)
             self._ksp = ksp
         self.inputs = []
         for form in input_forms:
@@ -439,6 +565,8 @@ class NewmarkIntegrator:
 
     def _load(self, u, out):
         out.set(0.0)
+        if u is None and not self.inputs:
+            return out
         u = np.atleast_1d(np.asarray(u, dtype=float))
         if len(u) != len(self.inputs):
             raise InputError(f"expected {len(self.inputs)} input values, got {len(u)}")
@@ -470,8 +598,9 @@ class NewmarkIntegrator:
                 ksp.destroy()
         self.t = 0.0
 
-    def step(self, u1):
-        """Advance one step with the inputs u(t + dt)."""
+    def step(self, u1=None) -> "fem.Function":
+        """Advance one step with the inputs u(t + dt) (None when there are no input forms);
+        return ``self.q``."""
         dt = self.dt
         q, v, a = self.q.x.petsc_vec, self.v.x.petsc_vec, self.a.x.petsc_vec
         qs, vs, rhs, tmp = self._qs, self._vs, self._rhs, self._tmp
@@ -497,14 +626,31 @@ class NewmarkIntegrator:
         for f in (self.q, self.v, self.a):
             f.x.scatter_forward()
         self.t += dt
+        return self.q
 
-    def energy(self) -> float:
-        """1/2 v^T M v + 1/2 q^T K q (mechanical energy)."""
-        q, v, tmp = self.q.x.petsc_vec, self.v.x.petsc_vec, self._tmp
+    def velocity(self, out: "fem.Function | None" = None) -> "fem.Function":
+        """The current velocity (``self.v``, or a copy in ``out``)."""
+        if out is None:
+            return self.v
+        out.x.array[:] = self.v.x.array
+        return out
+
+    def energy(self, v: "fem.Function | None" = None) -> float:
+        """1/2 v^T M v + 1/2 q^T K q (mechanical energy; v defaults to the current velocity)."""
+        q, tmp = self.q.x.petsc_vec, self._tmp
+        v = self.v.x.petsc_vec if v is None else v.x.petsc_vec
         self.M.mult(v, tmp)
         e = 0.5 * v.dot(tmp)
         self.K.mult(q, tmp)
         return float(e + 0.5 * q.dot(tmp))
+
+    def close(self) -> None:
+        """Destroy the PETSc objects (matrices, solver, work and input vectors)."""
+        _destroy(self._ksp, self.M, self.K, self.C, self.A, self._qs, self._vs, self._rhs,
+                 self._tmp, *self.inputs)
+        self._ksp = self.M = self.K = self.C = self.A = None
+        self._qs = self._vs = self._rhs = self._tmp = None
+        self.inputs = []
 
 
 def rigid_body_modes(V):
