@@ -27,10 +27,7 @@ Writes DIR/metrics.json and DIR/*.png. ``--quick`` shortens windows and the r sw
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -41,6 +38,7 @@ from dolfinx_lopinf._dolfinx import MPI
 from dolfinx_lopinf.fom import output_matrix_in_state
 from dolfinx_lopinf.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import beam as scene
+from dolfinx_lopinf.studies import harness
 
 FULL = dict(t_train=scene.T_TRAIN, t_end=scene.T_END, t_energy=2.0, t_long=3.0,
             r_values=list(range(2, 21, 2)), r_plot=20, every_long=10)
@@ -49,14 +47,12 @@ QUICK = dict(t_train=0.01, t_end=0.04, t_energy=0.2, t_long=0.3,
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="short windows, r in {4, 8} (< 1 min)")
-    parser.add_argument("--out", default="results/beam", help="output directory")
-    args = parser.parse_args(argv)
+    args = harness.parse(__doc__, argv, out="results/beam", quick="short windows, r in {4, 8} (< 1 min)")
     cfg = QUICK if args.quick else FULL
-    out = Path(args.out)
+    out = args.out
     comm = MPI.COMM_WORLD
-    if comm.rank == 0:
+    root = harness.is_root(comm)
+    if root:
         out.mkdir(parents=True, exist_ok=True)
     dt = scene.DT
 
@@ -66,14 +62,11 @@ def main(argv=None):
     snaps, info = lo.run(beam.system, q0, v0, dt, cfg["t_long"], state_until=cfg["t_end"],
                          state_map=beam.state_map, output_matrix=beam.output_matrix)
     E_mid = output_matrix_in_state(beam.system.V, beam.output_matrix, beam.state_map)
-    root = comm.rank == 0
     if root:
         print(f"FOM: {info['steps']} steps to t = {cfg['t_long']} s in {info['seconds']:.1f} s, "
               f"energy drift {info['energy_drift']:.2e} (relative, to t = {cfg['t_end']} s)")
         train = snaps.window(0.0, cfg["t_train"])
         test = snaps.window(cfg["t_train"], cfg["t_end"])
-    n_steps = int(round(cfg["t_end"] / dt))
-    n_long = int(round(cfg["t_long"] / dt))
 
     # --- basis and reduced data: only the training snapshots -------------------------------
     # Two bases, both from the training snapshots: the paper's block-diagonal Euclidean POD
@@ -117,20 +110,18 @@ def main(argv=None):
                     traj_plot[basis_name] = trajs
     if not root:
         return None
-    metrics = {
-        "scene": "beam", "n_dofs": int(snaps.n_states), "dt": dt, "t_train": cfg["t_train"],
-        "t_end": cfg["t_end"], "t_energy": cfg["t_energy"], "t_long": cfg["t_long"],
-        "quick": bool(args.quick),
-        "fom_seconds": info["seconds"], "fom_steps": info["steps"],
-        "fom_seconds_to_t_end": info["seconds_to_state_until"],
-        "fom_energy_drift": info["energy_drift"],
-        "energy_error_definition": "max over t <= t_energy of |E(V qh, V vh) - E(V qh0, V vh0)| / E(V qh0, V vh0), FOM energy",
-        "stable_definition": "states finite and relative FOM energy error <= 1 for t <= t_energy",
-        "roms": rows,
+    metrics = harness.metrics(
+        "beam", error="state", quick=args.quick, roms=rows,
+        n_dofs=int(snaps.n_states), dt=dt, t_train=cfg["t_train"],
+        t_end=cfg["t_end"], t_energy=cfg["t_energy"], t_long=cfg["t_long"],
+        fom_seconds=info["seconds"], fom_steps=info["steps"],
+        fom_seconds_to_t_end=info["seconds_to_state_until"],
+        fom_energy_drift=info["energy_drift"],
+        energy_error_definition="max over t <= t_energy of |E(V qh, V vh) - E(V qh0, V vh0)| / E(V qh0, V vh0), FOM energy",
         # opinf's first-order model (dolfinx_lopinf.peers), scored as the rows above; empty
         # without opinf. peer_seconds: everything the peer rows cost (fits, POD, runs, scores)
-        "peer_roms": peer_rows,
-        "peer": {"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
+        peer_roms=peer_rows,
+        peer={"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
                  "install": peers.INSTALL_HINT,
                  "model": "ContinuousModel('A') on x = [q; q_t] (2r states), L2Solver, "
                           "regulariser by ROM.fit_regselect_continuous over logspace(-12, 2, 15); "
@@ -138,9 +129,8 @@ def main(argv=None):
                           "integrated exactly (expm)",
                  "basis": {"euclidean-block": "opinf PODBasis(2r, svdsolver='randomized') of "
                                               "the scaled [q; q_t]",
-                           "mass-orthonormal": "the row's mass-orthonormal basis for q and q_t"}},
-    }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+                           "mass-orthonormal": "the row's mass-orthonormal basis for q and q_t"}})
+    harness.write_metrics(out, metrics)
     _figures(out, cfg, snaps, beam, traj_plot, rows, E_mid, dt)
     if peer_rows:
         _peer_figures(out, cfg, traj_plot, rows, peer_rows)
@@ -178,19 +168,17 @@ def _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt):
         Q_rom = basis.reconstruct(short.Qh)
         energy_err = np.abs(_fom_energy(galerkin, long.Qh, long.Vh) - E_ref) / abs(E_ref)
         window = long.times <= cfg["t_energy"] + 1e-12
-        row = {
-            "method": method, "r": basis.r,
-            "train_error": lo.relative_error(train.Q, Q_rom[:, :k_train]),
-            "test_error": lo.relative_error(test.Q, Q_rom[:, k_train - 1:]),
-            "projection_error_train": basis.projection_error(train.Q),
-            "projection_error_test": basis.projection_error(test.Q),
-            "max_energy_error": float(np.nanmax(energy_err[window])),
-            "max_energy_error_t_long": float(np.nanmax(energy_err)),
-            "infer_seconds": float(rom.meta.get("infer_seconds", 0.0)),
-            "rom_seconds": short.seconds,
-            "rom_seconds_long": long.seconds,
-            "stable": lo.metrics.is_stable(long.Qh, energy_err[window]),
-        }
+        row = harness.rom_row(
+            method, basis.r,
+            train_error=lo.relative_error(train.Q, Q_rom[:, :k_train]),
+            test_error=lo.relative_error(test.Q, Q_rom[:, k_train - 1:]),
+            stable=harness.stable(long.Qh, energy_err[window]),
+            projection_error_train=basis.projection_error(train.Q),
+            projection_error_test=basis.projection_error(test.Q),
+            max_energy_error=float(np.nanmax(energy_err[window])),
+            max_energy_error_t_long=float(np.nanmax(energy_err)),
+            infer_seconds=float(rom.meta.get("infer_seconds", 0.0)),
+            rom_seconds=short.seconds, rom_seconds_long=long.seconds)
         if method in fits:
             cert = fits[method].certificate
             row.update(solver=cert["solver"], min_eig_K=cert["min_eig_K"],
@@ -214,21 +202,18 @@ def _score_peer(peer, train, test, snaps, cfg, dt, mass, stiffness):
         energy_err = np.abs(energy - energy[0]) / abs(energy[0])
     window = long.times <= cfg["t_energy"] + 1e-12
     k_train = len(train.times)
-    row = {
-        "method": "opinf_peer", "r": peer.r,
-        "train_error": lo.relative_error(train.Q, short.Q[:, :k_train]),
-        "test_error": lo.relative_error(test.Q, short.Q[:, k_train - 1:]),
-        "projection_error_train": peer.projection_error(train.Q, train.V),
-        "projection_error_test": peer.projection_error(test.Q, test.V),
-        "max_energy_error": float(np.nanmax(energy_err[window])),
-        "max_energy_error_t_long": float(np.nanmax(energy_err)),
-        "infer_seconds": peer.fit_seconds,
-        "rom_seconds": short.seconds,
-        "rom_seconds_long": long.seconds,
-        "stable": lo.metrics.is_stable(long.Xh, energy_err[window]),
-        "regularizer": peer.regularizer, "reduced_states": 2 * peer.r,
-        "peer_basis": peer.basis_kind, "velocity_source": peer.velocity_source,
-    }
+    row = harness.rom_row(
+        "opinf_peer", peer.r,
+        train_error=lo.relative_error(train.Q, short.Q[:, :k_train]),
+        test_error=lo.relative_error(test.Q, short.Q[:, k_train - 1:]),
+        stable=harness.stable(long.Xh, energy_err[window]),
+        projection_error_train=peer.projection_error(train.Q, train.V),
+        projection_error_test=peer.projection_error(test.Q, test.V),
+        max_energy_error=float(np.nanmax(energy_err[window])),
+        max_energy_error_t_long=float(np.nanmax(energy_err)),
+        infer_seconds=peer.fit_seconds, rom_seconds=short.seconds, rom_seconds_long=long.seconds,
+        regularizer=peer.regularizer, reduced_states=2 * peer.r,
+        peer_basis=peer.basis_kind, velocity_source=peer.velocity_source)
     return row, (short, long, energy_err, None)
 
 
@@ -308,13 +293,12 @@ def _peer_figures(out, cfg, traj_by_basis, rows, peer_rows):
 
 
 def _summary(rows, cfg):
-    print(f"{'basis':>16} {'method':>10} {'r':>3} {'train':>9} {'test':>9} {'proj test':>9} "
-          f"{'energy err':>10} {'infer s':>8} {'rom s':>7} stable")
-    for row in rows:
-        print(f"{row['basis']:>16} {row['method']:>10} {row['r']:>3} {row['train_error']:9.2e} "
-              f"{row['test_error']:9.2e} {row['projection_error_test']:9.2e} "
-              f"{row['max_energy_error']:10.2e} {row['infer_seconds']:8.3f} "
-              f"{row['rom_seconds']:7.3f} {row['stable']}")
+    harness.summary(rows, [("basis", "basis"), ("method", "method"), ("r", "r"),
+                           ("train_error", "train"), ("test_error", "test"),
+                           ("projection_error_test", "proj test"),
+                           ("max_energy_error", "energy err"), ("infer_seconds", "infer s"),
+                           ("rom_seconds", "rom s"), ("stable", "stable")],
+                    widths=[16, 10, 3, 9, 9, 9, 10, 9, 9, 6])
 
 
 if __name__ == "__main__":

@@ -1,0 +1,1 @@
+"""Study tools: what the demos and experiments share (not the library's numerical layers)."""
