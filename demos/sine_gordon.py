@@ -19,10 +19,7 @@
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -32,6 +29,7 @@ from dolfinx_lopinf import nonlinear, render
 from dolfinx_lopinf._dolfinx import MPI
 from dolfinx_lopinf.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import sine_gordon as scene
+from dolfinx_lopinf.studies import harness
 
 FULL = dict(n=scene.N_POINTS, t_train=scene.T_TRAIN, t_end=scene.T_END, t_long=scene.T_LONG,
             r_values=list(range(1, 15)), r_long=[12, 14], shapes_at=[5.0, 15.0, 25.0], every=10)
@@ -40,13 +38,10 @@ QUICK = dict(n=400, t_train=2.0, t_end=6.0, t_long=12.0, r_values=[4, 8], r_long
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="n = 400, short windows, r in {4, 8}")
-    parser.add_argument("--out", default="results/sine_gordon")
-    args = parser.parse_args(argv)
+    args = harness.parse(__doc__, argv, out="results/sine_gordon", quick="n = 400, short windows, r in {4, 8}")
     cfg = QUICK if args.quick else FULL
     comm = MPI.COMM_WORLD
-    out = Path(args.out)
+    out = args.out
     dt = scene.DT
 
     # --- FOM from the UFL Lagrangian -------------------------------------------------------
@@ -64,7 +59,7 @@ def main(argv=None):
     stiff = dense_state_matrix(sg.system.stiffness_form, sg.system.V, sg.state_map)
     mass = dense_state_matrix(sg.system.mass_form, sg.system.V, sg.state_map)
     v0s = v0_state(sg, v0)  # collective gather: every rank, before the ROM work on rank 0
-    if comm.rank != 0:
+    if not harness.is_root(comm):
         return None
     out.mkdir(parents=True, exist_ok=True)
     h = float(np.mean(np.diag(mass)))
@@ -113,7 +108,7 @@ def main(argv=None):
                 Q_rom = V @ tr.Qh
                 row.update(train_error=lo.relative_error(Q_sub[:, :k_train + 1], Q_rom[:, :k_train + 1]),
                            test_error=lo.relative_error(Q_sub[:, k_train:], Q_rom[:, k_train:]),
-                           rom_seconds=tr.seconds, stable=bool(np.all(np.isfinite(tr.Qh))))
+                           rom_seconds=tr.seconds, stable=harness.stable(tr.Qh))
                 keep[(method, r)] = (rom, tr)
             except (RuntimeError, FloatingPointError, np.linalg.LinAlgError) as exc:
                 row.update(train_error=float("inf"), test_error=float("inf"), rom_seconds=None,
@@ -140,7 +135,7 @@ def main(argv=None):
             for row in rows:
                 if row["method"] == method and row["r"] == r:
                     row["max_energy_error"] = float(np.max(err))
-                    row["stable"] = row["stable"] and bool(np.all(np.isfinite(err)) and np.max(err) < 1)
+                    row["stable"] = row["stable"] and harness.stable(np.zeros(0), err)
     for row in rows:
         row.setdefault("max_energy_error", None)
 
@@ -150,32 +145,31 @@ def main(argv=None):
     hr = hyper_reduce(rom_full, train, dt, cfg)
     tr_h = hr.simulate(rom_full.V.T @ snaps.Q[:, 0], rom_full.V.T @ v0s, dt, n_steps, every=every)
     Q_h = rom_full.V @ tr_h.Qh
-    hyper_row = {"method": "lopinf_ecsw", "r": r_h, "points": int(hr.V.shape[0]),
-                 "train_error": lo.relative_error(Q_sub[:, :k_train + 1], Q_h[:, :k_train + 1]),
-                 "test_error": lo.relative_error(Q_sub[:, k_train:], Q_h[:, k_train:]),
-                 "rom_seconds": tr_h.seconds, "rom_seconds_full_nonlinearity": tr_full.seconds,
-                 "infer_seconds": hr.meta["ecsw_seconds"], "stable": bool(np.all(np.isfinite(tr_h.Qh))),
-                 "projection_error_test": rows[-1]["projection_error_test"], "max_energy_error": None}
+    hyper_row = harness.rom_row(
+        "lopinf_ecsw", r_h, points=int(hr.V.shape[0]),
+        train_error=lo.relative_error(Q_sub[:, :k_train + 1], Q_h[:, :k_train + 1]),
+        test_error=lo.relative_error(Q_sub[:, k_train:], Q_h[:, k_train:]),
+        rom_seconds=tr_h.seconds, rom_seconds_full_nonlinearity=tr_full.seconds,
+        infer_seconds=hr.meta["ecsw_seconds"], stable=harness.stable(tr_h.Qh),
+        projection_error_test=rows[-1]["projection_error_test"], max_energy_error=None)
     rows.append(hyper_row)
     scaling = step_time_vs_n(cfg, r_h) if not args.quick else []
 
-    metrics = {"scene": "sine_gordon", "n_dofs": int(snaps.n_states), "dt": dt,
-               "t_train": cfg["t_train"], "t_end": cfg["t_end"], "t_long": cfg["t_long"],
-               "quick": bool(args.quick), "fom_seconds": info["seconds"],
-               "fom_steps": info["steps"], "fom_energy_drift_definition": "max |E - E0| / E0 to t_long",
-               "fom_seconds_to_t_end": info["seconds_to_state_until"],
-               "fom_energy_drift": info["energy_drift"], "fom_error_vs_exact": exact_err,
-               "energy_error_definition": "max over t <= t_long of |E(V qh, V vh) - E(0)| / E(0), FOM energy",
-               "hyper_reduction_step_time_vs_n": scaling,
-               "roms": rows}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    metrics = harness.metrics(
+        "sine_gordon", error="state", quick=args.quick, roms=rows,
+        n_dofs=int(snaps.n_states), dt=dt, t_train=cfg["t_train"], t_end=cfg["t_end"],
+        t_long=cfg["t_long"], fom_seconds=info["seconds"], fom_steps=info["steps"],
+        fom_energy_drift_definition="max |E - E0| / E0 to t_long",
+        fom_seconds_to_t_end=info["seconds_to_state_until"],
+        fom_energy_drift=info["energy_drift"], fom_error_vs_exact=exact_err,
+        energy_error_definition="max over t <= t_long of |E(V qh, V vh) - E(0)| / E(0), FOM energy",
+        hyper_reduction_step_time_vs_n=scaling)
+    harness.write_metrics(out, metrics)
     _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, info["seconds_to_state_until"])
-    print(f"{'method':>10} {'r':>3} {'train':>9} {'test':>9} {'proj test':>9} {'energy':>9} {'rom s':>7}")
-    for row in rows:
-        e = row["max_energy_error"]
-        print(f"{row['method']:>10} {row['r']:>3} {row['train_error']:9.2e} {row['test_error']:9.2e} "
-              f"{row['projection_error_test']:9.2e} {'' if e is None else f'{e:9.2e}':>9} "
-              f"{row['rom_seconds'] or float('nan'):7.2f}")
+    harness.summary(rows, [("method", "method"), ("r", "r"), ("train_error", "train"),
+                           ("test_error", "test"), ("projection_error_test", "proj test"),
+                           ("max_energy_error", "energy"), ("rom_seconds", "rom s"),
+                           ("stable", "stable")], widths=[11, 3, 9, 9, 9, 9, 9, 6])
     return metrics
 
 
