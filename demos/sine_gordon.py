@@ -238,7 +238,7 @@ def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
     render.error_vs_r(out / "error_vs_r.png", [r for r in rows if np.isfinite(r["test_error"])],
                       title="sine-Gordon: relative state error")
     r_show = max(cfg["r_long"])
-    series, tgrid = {}, {}
+    series = {}
     for t in cfg["shapes_at"]:
         k = int(round(t / dt))
         series[f"FOM t={t:g}"] = snaps.Q[:, k]
