@@ -23,17 +23,15 @@ the same tip error (rows ``opinf_peer`` under ``peer_roms`` in metrics.json).
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
 import dolfinx_lopinf as lo  # imports dolfinx_solver first when the PyPI wheel is used
 from dolfinx_lopinf import peers, render
 from dolfinx_lopinf.fom import output_matrix_in_state
+from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402  (after dolfinx_lopinf, for the PyPI wheel)
 import dolfinx.fem.petsc  # noqa: E402
@@ -128,13 +126,11 @@ def simulate_cantilever(load, t_end, n_cells=(30, 4, 4), recorder_factory=None):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="coarser mesh, shorter runs")
-    parser.add_argument("--out", default="results/existing_code")
-    parser.add_argument("--r", default=None, help="reduced dimensions, comma-separated (default 2,4,8)")
-    args = parser.parse_args(argv)
+    args = harness.parse(__doc__, argv, out="results/existing_code", quick="coarser mesh, shorter runs",
+                         extra=lambda p: p.add_argument(
+                             "--r", default=None, help="reduced dimensions, comma-separated (default 2,4,8)"))
     comm = MPI.COMM_WORLD
-    out = Path(args.out)
+    out = args.out
     cells = (12, 2, 2) if args.quick else (30, 4, 4)
     t_train, t_test = (1.0, 1.0) if args.quick else (2.0, 2.0)
     tip_point = np.array([[LENGTH, 0.5 * WIDTH, 0.5 * HEIGHT]])
@@ -151,7 +147,7 @@ def main(argv=None):
     with_peer = peers.have_opinf()
     E_state = output_matrix_in_state(V, rec_train.output_matrix, rec_train.state_map) \
         if with_peer else None
-    if comm.rank != 0:
+    if not harness.is_root(comm):
         return None
 
     # 2. non-intrusive fit from the arrays alone: one call per r; scheme="auto" finds the
@@ -170,17 +166,17 @@ def main(argv=None):
             pred = model.predict(n_test, inputs=test_load)    # 3. the unseen load history
             refit = model.predict(n_train, inputs=train_load)
             cert = model.report["certificate"]
-            rows.append({"method": method, "r": r, "scheme": model.scheme,
-                         "mass": model.report["mass"], "why": model.report["why"],
-                         "scheme_errors": model.report["scheme_errors"],
-                         "train_output_error": lo.relative_error(train.Y, refit.Y),
-                         "test_output_error": lo.relative_error(test.Y, pred.Y),
-                         "infer_seconds": infer_s, "solve_seconds": cert["seconds"],
-                         "solver": cert["solver"], "rom_seconds": pred.seconds,
-                         "speedup": fom_test_s / pred.seconds, "min_eig_K": cert["min_eig_K"],
-                         "min_eig_C": cert["min_eig_C"],
-                         "projection_error_test": model.basis.projection_error(test.Q),
-                         "stable": bool(np.all(np.isfinite(pred.Qh)))})
+            rows.append(harness.rom_row(
+                method, r, scheme=model.scheme, mass=model.report["mass"], why=model.report["why"],
+                scheme_errors=model.report["scheme_errors"],
+                train_error=lo.relative_error(train.Y, refit.Y),
+                test_error=lo.relative_error(test.Y, pred.Y),
+                infer_seconds=infer_s, solve_seconds=cert["seconds"],
+                solver=cert["solver"], rom_seconds=pred.seconds,
+                speedup=fom_test_s / pred.seconds, min_eig_K=cert["min_eig_K"],
+                min_eig_C=cert["min_eig_C"],
+                projection_error_test=model.basis.projection_error(test.Q),
+                stable=harness.stable(pred.Qh)))
             preds[(method, r)] = pred
             if method == "lopinf" and r == r_values[-1]:
                 model.save(out / "cantilever_rom.npz")
@@ -197,37 +193,37 @@ def main(argv=None):
             rest = np.zeros(train.n_states)  # the loop starts at rest, as the ROMs do
             pred = peer.predict(rest, rest, test.times, test_load, full=False)
             refit = peer.predict(rest, rest, train.times, train_load, full=False)
-            peer_rows.append({
-                "method": "opinf_peer", "r": peer.r, "scheme": "exact",
-                "train_output_error": lo.relative_error(train.Y, refit.Y),
-                "test_output_error": lo.relative_error(test.Y, pred.Y),
-                "infer_seconds": peer.fit_seconds, "solve_seconds": peer.fit_seconds,
-                "solver": "opinf L2Solver, fit_regselect_continuous", "rom_seconds": pred.seconds,
-                "speedup": fom_test_s / pred.seconds,
-                "projection_error_test": peer.projection_error(test.Q, times=test.times),
-                "stable": pred.finite, "regularizer": peer.regularizer,
-                "reduced_states": 2 * peer.r, "velocity_source": peer.velocity_source,
-                "peer_basis": peer.basis_kind})
+            peer_rows.append(harness.rom_row(
+                "opinf_peer", peer.r, scheme="exact",
+                train_error=lo.relative_error(train.Y, refit.Y),
+                test_error=lo.relative_error(test.Y, pred.Y),
+                infer_seconds=peer.fit_seconds, solve_seconds=peer.fit_seconds,
+                solver="opinf L2Solver, fit_regselect_continuous", rom_seconds=pred.seconds,
+                speedup=fom_test_s / pred.seconds,
+                projection_error_test=peer.projection_error(test.Q, times=test.times),
+                stable=pred.finite, regularizer=peer.regularizer,
+                reduced_states=2 * peer.r, velocity_source=peer.velocity_source,
+                peer_basis=peer.basis_kind))
             preds[("opinf_peer", peer.r)] = pred
         peer_seconds = time.perf_counter() - t0
     r_top = r_values[-1]
     best = next(x for x in rows if x["method"] == "lopinf" and x["r"] == r_top)
-    metrics = {
-        "scene": "existing_code_cantilever", "n_dofs": int(train.n_states), "dt": DT,
-        "t_train": t_train, "t_end": t_test, "fom_seconds": fom_test_s,
-        "fom_train_seconds": fom_train_s, "saved_rom_r": r_top, "roms": rows,
+    metrics = harness.metrics(
+        "existing_code_cantilever", error="output", quick=args.quick, roms=rows,
+        n_dofs=int(train.n_states), dt=DT,
+        t_train=t_train, t_end=t_test, fom_seconds=fom_test_s,
+        fom_train_seconds=fom_train_s, saved_rom_r=r_top,
         # opinf's first-order model (dolfinx_lopinf.peers), scored as the rows above; empty
         # without opinf. peer: what it is and everything it cost (POD, fits, runs, scores)
-        "peer_roms": peer_rows,
-        "peer": {"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
+        peer_roms=peer_rows,
+        peer={"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
                  "install": peers.INSTALL_HINT,
                  "model": "ContinuousModel('AB') on x = [q; q_t] (2r states), q_t = opinf ord6 "
                           "differences of q; opinf PODBasis(2r, svdsolver='randomized') of the "
                           "scaled [q; q_t]; L2Solver, "
                           "regulariser by ROM.fit_regselect_continuous over logspace(-12, 2, 15); "
-                          "integrated exactly (expm, load linear between steps)"},
-    }
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+                          "integrated exactly (expm, load linear between steps)"})
+    harness.write_metrics(out, metrics)
     series = {"FOM (unseen load)": test.Y[0],
               f"L-OpInf r={r_top}, scheme {best['scheme']}": preds[("lopinf", r_top)].Y[0],
               f"L-OpInf r={r_top}, finite differences": preds[("lopinf_fd", r_top)].Y[0]}
@@ -235,15 +231,14 @@ def main(argv=None):
         series[f"opinf peer r={r_top} (first order, {2 * r_top} states)"] = preds[("opinf_peer", r_top)].Y[0]
     render.curves(out / "tip_displacement.png", test.times, series,
                   ylabel="tip displacement u_z [m]",
-                  title=f"unseen load: relative error {best['test_output_error']:.1e}, ROM "
+                  title=f"unseen load: relative error {best['test_error']:.1e}, ROM "
                         f"{best['speedup']:.0f}x faster")
     print(f"n = {train.n_states} dofs; FOM {fom_test_s:.2f} s for {n_test} steps")
-    print(f"{'method':>10} {'r':>3} {'scheme':>10} {'Mh':>8} {'tip err train':>13} "
-          f"{'unseen load':>11} {'fit s':>6} {'ROM ms':>7}")
-    for x in sorted(rows + peer_rows, key=lambda x: x["r"]):
-        print(f"{x['method']:>10} {x['r']:>3} {x['scheme']:>10} {x.get('mass', '-'):>8} "
-              f"{x['train_output_error']:13.2e} "
-              f"{x['test_output_error']:11.2e} {x['infer_seconds']:6.2f} {x['rom_seconds'] * 1e3:7.1f}")
+    harness.summary(sorted(rows + peer_rows, key=lambda x: x["r"]),
+                    [("method", "method"), ("r", "r"), ("scheme", "scheme"), ("mass", "Mh"),
+                     ("train_error", "tip err train"), ("test_error", "unseen load"),
+                     ("infer_seconds", "fit s"), ("rom_seconds", "ROM s")],
+                    widths=[10, 3, 10, 8, 13, 11, 9, 9])
     if with_peer:
         print(f"opinf peer rows: {peer_seconds:.1f} s in all")
     return metrics
