@@ -250,7 +250,6 @@ class LagrangianROM:
             compiled.kernels()  # compile / load from the cache outside the timed region
         chunks = self._input_chunks(inputs, dt, n_steps)
         t0 = time.perf_counter()
-        input_seconds = 0.0  # evaluating a callable input is not integration time
         n_out = n_steps // every + 1
         X = np.empty((2 * r, n_out))
         if self.scheme == "midpoint":
@@ -261,20 +260,26 @@ class LagrangianROM:
             x = np.concatenate([q0, v0])
         X[:, 0] = x
         j = 1
+        timing = {"inputs": 0.0}  # evaluating a callable input is not integration time
+
+        def forcing_chunks():
+            """(k0, k1, the forcing rows f_k of steps k0 .. k1-1 as a (2r, k1-k0) array)."""
+            for k0 in range(0, n_steps, _CHUNK):
+                k1 = min(k0 + _CHUNK, n_steps)
+                ti = time.perf_counter()
+                U = chunks(k0, k1)
+                timing["inputs"] += time.perf_counter() - ti
+                yield k0, k1, (H @ U if self.scheme == "midpoint"
+                               else H0 @ U[:, :-1] + H1 @ U[:, 1:])
+
         if backend == "numba":
             G, x = np.ascontiguousarray(G), np.ascontiguousarray(x)
             if chunks is None:
                 compiled.affine_run(G, x, None, n_steps, 0, every, X, j)
             else:
-                for k0 in range(0, n_steps, _CHUNK):
-                    k1 = min(k0 + _CHUNK, n_steps)
-                    ti = time.perf_counter()
-                    U = chunks(k0, k1)
-                    input_seconds += time.perf_counter() - ti
-                    # the forcing rows f_k of these steps, (k1-k0, 2r): the same products
-                    FT = (U.T @ H.T if self.scheme == "midpoint"
-                          else U[:, :-1].T @ H0.T + U[:, 1:].T @ H1.T)
-                    j = compiled.affine_run(G, x, FT, k1 - k0, k0, every, X, j)
+                for k0, k1, forcing in forcing_chunks():
+                    j = compiled.affine_run(G, x, np.ascontiguousarray(forcing.T), k1 - k0, k0,
+                                            every, X, j)
         elif chunks is None:
             for k in range(n_steps):
                 x = G @ x
@@ -282,19 +287,14 @@ class LagrangianROM:
                     X[:, j] = x
                     j += 1
         else:
-            for k0 in range(0, n_steps, _CHUNK):
-                k1 = min(k0 + _CHUNK, n_steps)
-                ti = time.perf_counter()
-                U = chunks(k0, k1)
-                input_seconds += time.perf_counter() - ti
-                # the forcing of these steps only (2r x _CHUNK), same products as for all at once
-                forcing = H @ U if self.scheme == "midpoint" else H0 @ U[:, :-1] + H1 @ U[:, 1:]
+            for k0, k1, forcing in forcing_chunks():
                 for i in range(k1 - k0):
                     x = G @ x
                     x += forcing[:, i]
                     if (k0 + i + 1) % every == 0:
                         X[:, j] = x
                         j += 1
+        input_seconds = timing["inputs"]
         Qh = X[:r]
         Vh = X[r:]  # Newmark: velocities; midpoint: momenta p = M v (M = I when None)
         if self.scheme == "midpoint" and self.M is not None:
