@@ -17,60 +17,46 @@
 
 from __future__ import annotations
 
-import argparse
-import json
 import resource
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf import render
 from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.fom import StateMap, gather_states, output_matrix_in_state
+from dolfinx_lopinf.fom import (EnergyProbe, FieldSnapshots, OutputProbe, Progress, StateMap,
+                                gather_states, output_matrix_in_state, run)
 from dolfinx_lopinf.integrators import NewmarkIntegrator, rigid_body_modes
 from dolfinx_lopinf.streaming import StreamingPOD
 from dolfinx_lopinf.intrusive import reduced_matrix
 from dolfinx_lopinf.scenes import fishtail as scene
+from dolfinx_lopinf.studies import harness
 
 TRAIN_WINDOW = {"sine": 0.4, "sigmoid": 1.0}
 
 
 def run_fom(tail, nm, u_fn, t_end, comm, *, spod=None, t_keep=0.0, snap_steps=()):
-    """Newmark to t_end. States up to t_keep go to ``spod`` (an on-disk StreamingPOD, so
-    memory does not grow with n x K); the POI output and the energy are kept every step, full
-    fields only at ``snap_steps`` (for the renders)."""
-    dt = scene.DT
-    n_steps = int(round(t_end / dt))
-    n_keep = int(round(t_keep / dt)) if spod is not None else -1
-    Y, E = np.empty(n_steps + 1), np.empty(n_steps + 1)
-    snaps = {}
+    """Newmark to t_end through the one time loop. States up to t_keep go to ``spod`` (an
+    on-disk StreamingPOD, so memory does not grow with n x K); the POI output and the energy
+    are kept every step, full fields only at ``snap_steps`` (for the renders)."""
+    n_steps = int(round(t_end / scene.DT))
     nm.initialize(tail.chamber_pressures(float(u_fn(0.0))))
-    if n_keep >= 0:
-        spod.append(nm.q)
-    Y[0], E[0] = 0.0, 0.0
-    t0 = time.perf_counter()
-    for k in tqdm(range(1, n_steps + 1), disable=comm.rank != 0 or not sys.stderr.isatty(),
-                  desc="FOM", unit="step"):
-        nm.step(tail.chamber_pressures(float(u_fn(k * dt))))
-        if k <= n_keep:
-            spod.append(nm.q)
-        if k in snap_steps:
-            snaps[k] = nm.q.x.array.copy()
-        Y[k] = comm.allreduce(float((tail.output_matrix @ nm.q.x.array)[0]))
-        E[k] = nm.energy()
-    seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
-    return Y, E, seconds, snaps
+    y, energy, fields = OutputProbe(tail.output_matrix), EnergyProbe(), FieldSnapshots(snap_steps)
+    sinks = [y, energy, fields]
+    if spod is not None:
+        sinks.insert(0, spod.sink(until_step=int(round(t_keep / scene.DT))))
+    if harness.is_root(comm) and sys.stderr.isatty():
+        sinks.append(Progress(every=50))
+    loop = run(nm, n_steps, sinks=sinks, inputs=lambda t: tail.chamber_pressures(float(u_fn(t))))
+    Y = np.array([v[0] for v in y.values])
+    return Y, np.array(energy.values), loop["seconds"], fields.fields
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="small mesh, T = 0.6 s, r in {2, 4}")
+def _options(parser):
+    """The fishtail's own command-line options (beside the harness's --quick and --out)."""
     parser.add_argument("--size", choices=sorted(scene.SIZES), default="default")
-    parser.add_argument("--out", default="results/fishtail")
     parser.add_argument("--train", choices=sorted(TRAIN_WINDOW), default="sine")
     parser.add_argument("--basis", choices=["mass", "euclidean"], default="mass")
     parser.add_argument("--inputs", default=None,
@@ -84,9 +70,14 @@ def main(argv=None):
     parser.add_argument("--scratch", default=None, help="directory for the on-disk training snapshots")
     parser.add_argument("--hull-density", choices=sorted(scene.HULL_DENSITIES), default="paper",
                         help="silicone: 1.07e3 kg/m^3; paper: 1.07e-3 kg/m^3 as the paper prints it")
-    args = parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = harness.parse(__doc__, argv, out="results/fishtail",
+                         quick="small mesh, T = 0.6 s, r in {2, 4}", extra=_options)
+    parser = args.parser
     comm = MPI.COMM_WORLD
-    out = Path(args.out)
+    out = args.out
     size = "small" if args.quick else args.size
     t_end = 0.6 if args.quick else scene.T_END
     t_train = TRAIN_WINDOW[args.train]
@@ -182,14 +173,16 @@ def main(argv=None):
         intrusive = lo.LagrangianROM(K=Kg, M=Mg, C=Cg, B=Bg, E=Eg, scheme="newmark")
         for method, rom in (("lopinf", lopinf), ("intrusive", intrusive)):
             row = {"method": method, "r": r, "infer_seconds": infer_s if method == "lopinf" else 0.0,
-                   "output_errors": {}, "rom_seconds": {}}
+                   "output_errors": {}, "rom_seconds_by_input": {}}
+            outputs = []
             for name in inputs:
                 n = int(round(t_end / dt))
-                tr = rom.simulate(np.zeros(r), np.zeros(r), dt, n, inputs=lambda t: np.array([scene.INPUTS[name](t)]))
+                tr = rom.simulate(np.zeros(r), np.zeros(r), dt, n, inputs=lambda t, name=name: np.array([scene.INPUTS[name](t)]))
                 y_fom = fom[name]["Y"]
                 row["output_errors"][name] = lo.relative_error(y_fom, tr.Y[0])
                 row.setdefault("trajectories", {})[name] = tr.Y[0]
-                row["rom_seconds"][name] = tr.seconds
+                row["rom_seconds_by_input"][name] = tr.seconds
+                outputs.append(tr.Y[0])
                 e_rom = 0.5 * np.einsum("ik,ij,jk->k", tr.Vh, Mg, tr.Vh) + 0.5 * np.einsum("ik,ij,jk->k", tr.Qh, Kg, tr.Qh)
                 row.setdefault("energy_errors", {})[name] = float(
                     np.abs(e_rom - fom[name]["E"]).max() / np.abs(fom[name]["E"]).max())
@@ -204,25 +197,30 @@ def main(argv=None):
                 row["test_error"] = lo.relative_error(fom[args.train]["Y"][n_train_steps:],
                                                       row["trajectories"][args.train][n_train_steps:])
             row.pop("trajectories")
-            row["stable"] = bool(all(np.isfinite(v) for v in row["output_errors"].values()))
+            row["rom_seconds"] = max(row["rom_seconds_by_input"].values())  # the slowest input
+            row["stable"] = harness.stable(np.concatenate(outputs))
             if method == "lopinf":
                 row.update(min_eig_K=ops.certificate["min_eig_K"], min_eig_C=ops.certificate["min_eig_C"],
                            solver=ops.certificate["solver"])
             rows.append(row)
     # peak resident memory of each rank (ru_maxrss is in KiB on Linux)
     peak_rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
-    if comm.rank != 0:
+    if not harness.is_root(comm):
+        nm.close()
         return None
     out.mkdir(parents=True, exist_ok=True)
-    metrics = {"scene": "fishtail", "size": size, "n_dofs": int(n_dofs), "dt": dt,
-               "t_train": t_train, "train_input": args.train, "t_end": t_end,
-               "fom_seconds": {k: v["seconds"] for k, v in fom.items()},
-               "fom_setup_seconds": setup_s, "pod_seconds": pod_s,
-               "snapshot_disk_bytes": int(snapshot_disk), "n_ranks": comm.size,
-               "peak_rss_bytes_per_rank": peak_rss, "u_pre": 0.0, "basis": args.basis, "data": args.data,
-               "hull_density": scene.HULL_DENSITIES[args.hull_density],
-               "pod_singular_values": np.sqrt(np.maximum(pod_lam[:20], 0)).tolist(), "roms": rows}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    fom_seconds = {k: v["seconds"] for k, v in fom.items()}
+    metrics = harness.metrics(
+        "fishtail", error="output", quick=args.quick, roms=rows,
+        size=size, n_dofs=int(n_dofs), dt=dt,
+        t_train=t_train, train_input=args.train, t_end=t_end,
+        fom_seconds=max(fom_seconds.values()), fom_seconds_by_input=fom_seconds,
+        fom_setup_seconds=setup_s, pod_seconds=pod_s,
+        snapshot_disk_bytes=int(snapshot_disk), n_ranks=comm.size,
+        peak_rss_bytes_per_rank=peak_rss, u_pre=0.0, basis=args.basis, data=args.data,
+        hull_density=scene.HULL_DENSITIES[args.hull_density],
+        pod_singular_values=np.sqrt(np.maximum(pod_lam[:20], 0)).tolist())
+    harness.write_metrics(out, metrics)
     t = dt * np.arange(int(round(t_end / dt)) + 1)
     for name in inputs:
         outputs, energies = {"FOM": fom[name]["Y"]}, {"FOM": fom[name]["E"]}
@@ -238,10 +236,10 @@ def main(argv=None):
         n_boundary, n_points = _renders(out, V, state_map, fom[render_input]["fields"], rom_plot,
                                         render_input, render_steps, gif_steps, r_values[-1], dt)
         metrics["render_reconstructed_points"] = {"boundary": int(n_boundary), "all": int(n_points)}
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    print(f"{'method':>10} {'r':>3} " + " ".join(f"{n:>9}" for n in inputs))
-    for row in rows:
-        print(f"{row['method']:>10} {row['r']:>3} " + " ".join(f"{row['output_errors'][n]:9.2e}" for n in inputs))
+        harness.write_metrics(out, metrics)
+    nm.close()
+    harness.summary([dict(row, **row["output_errors"]) for row in rows],
+                    ["method", "r"] + inputs + ["stable"], widths=[10, 3] + [9] * len(inputs) + [6])
     return metrics
 
 

@@ -6,6 +6,8 @@
         pod.append(q)                                 # dolfinx Function or owned array
     basis_local, Qh, lam = pod.compute(r)             # collective
 
+or, in the one time loop, as a sink: ``fom.run(integrator, n, sinks=[pod.sink(until_step=400)])``.
+
 The method of snapshots in the W inner product (W = M gives a mass-orthonormal basis, the
 reduced mass is then exactly I):
 
@@ -145,6 +147,13 @@ class StreamingPOD:
         """Number of singular values sqrt(lam) above ``rank_rtol`` times the largest (collective)."""
         sv = np.sqrt(np.maximum(self._eigen()[0], 0.0))
         return int(np.sum(sv > rank_rtol * max(sv[0], np.finfo(float).tiny)))
+
+    def sink(self, *, every: int = 1, until_step: int | None = None):
+        """A sink of :func:`dolfinx_lopinf.fom.run_loop` that appends the integrator's state
+        at every ``every``-th step up to ``until_step`` (step 0 included)."""
+        from .fom import Every
+
+        return Every(lambda s: self.append(s.q), every=every, until_step=until_step)
 
     @property
     def disk_bytes(self) -> int:
