@@ -16,8 +16,6 @@ Writes DIR/metrics.json.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 import time
 import warnings
@@ -27,8 +25,8 @@ import numpy as np
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.io_atomic import atomic_write_text
 from dolfinx_lopinf.scenes import beam as scene
+from dolfinx_lopinf.studies import harness
 
 sys.path.insert(0, str(Path(__file__).parent))
 import existing_code as cantilever  # noqa: E402  (the user's own loop, unchanged)
@@ -59,7 +57,7 @@ def beam_rows(r_values, t_end):
             tr = rom.simulate(basis.project(snaps.Q[:, 0]), basis.project(snaps.V[:, 0]),
                               scene.DT, len(snaps.times) - 1)
             rec = basis.reconstruct(tr.Qh[:, len(train.times) - 1:])
-            rows.append({"scene": "beam", "method": method, "r": r,
+            rows.append({"scene": "beam", "method": method, "r": r, "error": "state",
                          "test_error": lo.relative_error(test.Q, rec),
                          "projection_error_test": basis.projection_error(test.Q),
                          "infer_seconds": infer_s, "fom_seconds": fom_s,
@@ -91,7 +89,7 @@ def cantilever_rows(r_values, quick):
             pred = model.predict(len(test.times) - 1, inputs=cantilever.test_load)
             cert = model.report["certificate"]
             rows.append({"scene": "cantilever", "method": f"lopinf_mass_{mass}", "r": r,
-                         "test_output_error": lo.relative_error(test.Y, pred.Y),
+                         "error": "output", "test_error": lo.relative_error(test.Y, pred.Y),
                          "projection_error_test": model.basis.projection_error(test.Q),
                          "infer_seconds": infer_s, "fom_seconds": fom_s,
                          "solver": cert.get("solver"),
@@ -101,25 +99,18 @@ def cantilever_rows(r_values, quick):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="r in {4, 8}, shorter runs")
-    parser.add_argument("--out", default="results/learned_mass")
-    args = parser.parse_args(argv)
+    args = harness.parse(__doc__, argv, out="results/learned_mass", quick="r in {4, 8}, shorter runs")
     if MPI.COMM_WORLD.size > 1:
         raise SystemExit("learned_mass.py is a serial study (its fits are small); run it without mpiexec")
     rows = beam_rows([4, 8] if args.quick else list(range(4, 21, 4)), 0.06 if args.quick else scene.T_END)
     rows += cantilever_rows([2, 4] if args.quick else [2, 4, 8], args.quick)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "metrics.json", json.dumps({"rows": rows}, indent=1))
-    print(f"{'scene':>10} {'method':>20} {'r':>3} {'error':>9} {'projection':>10} {'fit s':>6} "
-          f"{'gap':>8}")
-    for x in rows:
-        err = x.get("test_error", x.get("test_output_error"))
-        gap = x.get("certified_gap")
-        print(f"{x['scene']:>10} {x['method']:>20} {x['r']:>3} {err:9.2e} "
-              f"{x['projection_error_test']:10.2e} {x['infer_seconds']:6.2f} "
-              + (f"{gap:8.1e}" if isinstance(gap, float) else f"{'-':>8}"))
+    # two scenes in one study: each row names its error kind (harness.ERRORS)
+    harness.write_metrics(args.out, {"rows": rows, "quick": bool(args.quick),
+                                     "error_definitions": harness.ERRORS})
+    harness.summary(rows, [("scene", "scene"), ("method", "method"), ("r", "r"), ("error", "error"),
+                           ("test_error", "test error"), ("projection_error_test", "projection"),
+                           ("infer_seconds", "fit s"), ("certified_gap", "gap")],
+                    widths=[10, 20, 3, 6, 10, 10, 9, 9])
     return rows
 
 
