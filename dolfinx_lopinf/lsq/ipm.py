@@ -11,7 +11,7 @@ import numpy as np
 import scipy.linalg
 
 from .face import FaceNewton
-from .linalg import SPDSolver, from_eig, quadratic, sym, vech_index
+from .linalg import SPDSolver, cholesky_solve, from_eig, quadratic, sym, vech_index
 from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
 
 STEP_FRACTION = 0.98
@@ -47,10 +47,11 @@ def _hkm_upper(Xi: np.ndarray, Lam: np.ndarray) -> np.ndarray:
     return M
 
 
-def _max_step(P_isqrt: np.ndarray, *dP: np.ndarray) -> float:
-    """Largest a <= 1 with P_k + a dP_k >= 0 for all blocks, from the stacked P_k^-1/2:
-    1 / max(0, -min_k lambda_min(P_k^-1/2 dP_k P_k^-1/2)) - one batched ``eigvalsh``."""
-    ev = np.linalg.eigvalsh(P_isqrt @ np.concatenate(dP) @ P_isqrt).min()
+def _max_step(S: np.ndarray, *dP: np.ndarray) -> float:
+    """Largest a <= 1 with P_k + a dP_k >= 0 for all blocks, from the stacked inverse
+    Cholesky factors S_k = R_k^-1 (P_k = R_k R_k^T): 1 / max(0, -min_k lambda_min(S_k dP_k
+    S_k^T)) - one batched ``eigvalsh`` (it reads the lower triangle)."""
+    ev = np.linalg.eigvalsh(S @ np.concatenate(dP) @ S.transpose(0, 2, 1)).min()
     return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
 
 
@@ -86,6 +87,7 @@ class PrimalDualIPM:
         self.Ms = self.H2.copy()  # Schur matrix: its diagonal blocks' upper triangles change
         _, _, _, _, _, tp, tq = _hkm_index(r)
         self.diag_pos = [(k * ix.nv + tp) * ix.n + k * ix.nv + tq for k in range(n_blocks)]
+        self.H2_diag = np.stack([self.H2.reshape(-1)[pos] for pos in self.diag_pos])  # gathered once
         self.c0 = quadratic(H, h, const, self.x_eps)
 
     def f(self, v):
@@ -156,11 +158,12 @@ class PrimalDualIPM:
 
     def _step(self, x, X, Lam, it):
         """Predictor-corrector direction and step: (dx, dLambda, step, sigma)."""
-        ix, m = self.ix, self.m
-        wX, VX = np.linalg.eigh(X)  # X^-1 through the eigenbasis: PD however wide X's spread
-        if wX.min() <= 0:
-            raise _Stop(f"iterate not positive definite at iteration {it}")
-        Xi = (VX / wX[:, None, :]) @ VX.transpose(0, 2, 1)
+        ix, m, b = self.ix, self.m, self.n_blocks
+        try:  # X_k = R R^T and Lambda_k: one batched Cholesky, one batched triangular inverse
+            S = np.linalg.inv(np.linalg.cholesky(np.concatenate([X, Lam])))
+        except np.linalg.LinAlgError:  # X or Lambda lost definiteness to rounding
+            raise _Stop(f"iterate not positive definite at iteration {it}") from None
+        Xi = S[:b].transpose(0, 2, 1) @ S[:b]  # X^-1 = R^-T R^-1: PD however wide X's spread
         rd = 2.0 * (self.Hs @ x + self.hs) - ix.Dw * ix.vech(Lam)
         mu = float(np.sum(X * Lam)) / m
         c = self._schur_cholesky(Xi, Lam)
@@ -168,28 +171,21 @@ class PrimalDualIPM:
             raise _Stop(f"Schur matrix not positive definite at iteration {it}, mu {mu:.1e}, "
                         f"f {self.f(x):.3e}")
         XL = X @ Lam
-        try:
-            wL, VL = np.linalg.eigh(Lam)
-            if wL.min() <= 0:
-                raise np.linalg.LinAlgError("multiplier not positive definite")
-            V = np.concatenate([VX, VL])  # (X_k, Lambda_k)^-1/2 stacked for the step lengths
-            P_is = (V / np.sqrt(np.concatenate([wX, wL]))[:, None, :]) @ V.transpose(0, 2, 1)
-            dx, dX, dL = self._direction(c, Xi, Lam, rd, -XL)                 # predictor (mu -> 0)
-            a = _max_step(P_is, dX, dL)
-            mu_aff = float(np.sum((X + a * dX) * (Lam + a * dL))) / m
-            sigma = (mu_aff / mu) ** 3
-            dx, dX, dL = self._direction(c, Xi, Lam, rd, sigma * mu * np.eye(self.r) - XL - dX @ dL)
-            a = min(1.0, STEP_FRACTION * _max_step(P_is, dX, dL))            # corrector
-        except np.linalg.LinAlgError:  # X or Lambda lost definiteness to rounding
-            raise _Stop(f"iterate not positive definite at iteration {it}") from None
+        dx, dX, dL = self._direction(c, Xi, Lam, rd, -XL)                     # predictor (mu -> 0)
+        a = _max_step(S, dX, dL)
+        mu_aff = float(np.sum((X + a * dX) * (Lam + a * dL))) / m
+        sigma = (mu_aff / mu) ** 3
+        dx, dX, dL = self._direction(c, Xi, Lam, rd, sigma * mu * np.eye(self.r) - XL - dX @ dL)
+        a = min(1.0, STEP_FRACTION * _max_step(S, dX, dL))                     # corrector
         return dx, dL, a, sigma
 
     def _schur_cholesky(self, Xi, Lam):
         """Lower Cholesky factor of the Schur matrix 2 H + HKM terms, or None."""
         hkm = _hkm_upper(Xi, Lam)
-        Ms_flat, H2_flat = self.Ms.reshape(-1), self.H2.reshape(-1)
+        hkm += self.H2_diag
+        Ms_flat = self.Ms.reshape(-1)
         for k in range(self.n_blocks):  # the diagonal blocks' upper triangles; the rest stays 2 H
-            Ms_flat[self.diag_pos[k]] = H2_flat[self.diag_pos[k]] + hkm[k]
+            Ms_flat[self.diag_pos[k]] = hkm[k]
         # lower Cholesky of the F-ordered view Ms^T (its lower triangle is Ms's upper one, the
         # part written above), 20 % faster than the upper one; no diagonal scaling is needed
         # (Cholesky's accuracy does not depend on one)
@@ -205,7 +201,7 @@ class PrimalDualIPM:
     def _direction(self, c, Xi, Lam, rd, R):
         XiR = Xi @ R
         rhs = -rd + self.ix.Dw * self.ix.vech(sym(XiR))
-        dx = scipy.linalg.lapack.dpotrs(c, rhs, lower=1)[0]
+        dx = cholesky_solve(c, rhs)
         dX = self.ix.blocks(dx)
         return dx, dX, sym(XiR - Xi @ dX @ Lam)
 

@@ -38,6 +38,15 @@ def psd_project(A: np.ndarray, floor: float):
     return from_eig(np.maximum(w, floor), Q), w, Q
 
 
+def cholesky_solve(c: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with L L^T x = b for the lower Cholesky factor L in ``c`` (its upper triangle is not
+    read) and one right-hand side: two triangular solves (``dtrsv``). OpenBLAS's ``dpotrs``
+    goes through the blocked ``trsm`` and is 5-7x slower for a single vector (n = 420:
+    135 us against 20 us)."""
+    y = scipy.linalg.blas.dtrsv(c, b, lower=1)
+    return scipy.linalg.blas.dtrsv(c, y, lower=1, trans=1, overwrite_x=1)
+
+
 class SPDSolver:
     """Jacobi-equilibrated Cholesky of an SPD matrix H (the K and C unknowns multiply data of
     very different size), reused for every solve; ``ok`` is False when H is singular (then
@@ -52,6 +61,8 @@ class SPDSolver:
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         d = self.d if rhs.ndim == 1 else self.d[:, None]
+        if self.ok and rhs.ndim == 1:
+            return cholesky_solve(self.c, rhs / d) / d
         if self.ok:
             return scipy.linalg.lapack.dpotrs(self.c, rhs / d, lower=1)[0] / d
         return np.linalg.lstsq(self.Hs, rhs / d, rcond=None)[0] / d
