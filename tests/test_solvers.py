@@ -72,6 +72,15 @@ def test_spd_solver_equilibrates_and_falls_back_on_singular_matrices():
     assert not singular.ok and np.allclose(singular.solve(np.array([2.0, 0.0])), [2.0, 0.0])
 
 
+
+def test_cholesky_solve_is_the_two_triangular_solves_of_potrs():
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((30, 30))
+    H = A @ A.T + 30 * np.eye(30)
+    c = np.asfortranarray(np.linalg.cholesky(H) + np.triu(rng.standard_normal((30, 30)), 1))
+    b = rng.standard_normal(30)  # the upper triangle of c is garbage and must not be read
+    assert np.allclose(linalg.cholesky_solve(c, b), np.linalg.solve(H, b), rtol=1e-12, atol=0)
+
 def test_vech_index_round_trips_and_lays_out_theta():
     r, nb = 4, 2
     ix = linalg.vech_index(r, nb)
@@ -278,3 +287,18 @@ def test_conservative_admm_skips_the_lyapunov_shortcut():
         admm = lo.infer_mechanical(Qh, None, ddQh, damping=False, solver="admm")
     assert auto.certificate["solver"] == "lyapunov" and admm.certificate["solver"] == "admm"
     assert np.allclose(admm.K, auto.K, rtol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["rigid", "mixed", "short"])
+def test_both_active_benchmark_data_is_certified_with_both_blocks_on_the_constraint(kind):
+    from dolfinx_lopinf import benchmark
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ops = lo.infer_mechanical(*benchmark.active_data(kind, 6, 3000), eps=1e-8)
+    cert = ops.certificate
+    assert cert["solver"] == "ipm" and cert["status"] == "optimal"
+    assert cert["duality_gap"] <= 1e-8
+    assert all(rank < 6 for rank in cert["face_ranks"])  # Kh and Ch both have eigenvalues at eps
+    for S in (ops.K, ops.C):
+        assert np.array_equal(S, S.T) and np.linalg.eigvalsh(S).min() >= 1e-8
