@@ -22,11 +22,8 @@ Writes DIR/metrics.json and DIR/error_vs_r.png. ``--quick``: shorter runs, r in 
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
@@ -34,6 +31,7 @@ import dolfinx_lopinf as lo
 from dolfinx_lopinf import render
 from dolfinx_lopinf._dolfinx import MPI
 from dolfinx_lopinf.scenes import beam as scene
+from dolfinx_lopinf.studies import harness
 
 TRAIN_A, TEST_A = (0.2, 0.3, 0.4, 0.5), (0.1, 0.6)
 FULL = dict(t_train=scene.T_TRAIN, t_test=scene.T_END, r_values=list(range(4, 21, 2)))
@@ -42,13 +40,10 @@ PAPER_2R20 = {"lopinf": 0.0223, "intrusive": 0.0401}  # METHOD.md / issue 14
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="short runs, r in {4, 8}")
-    parser.add_argument("--out", default="results/beam_unseen_ic")
-    args = parser.parse_args(argv)
+    args = harness.parse(__doc__, argv, out="results/beam_unseen_ic", quick="short runs, r in {4, 8}")
     cfg = QUICK if args.quick else FULL
     comm = MPI.COMM_WORLD
-    out = Path(args.out)
+    out = args.out
     beam = scene.build(200, comm)
     dt = scene.DT
 
@@ -62,7 +57,7 @@ def main(argv=None):
     train = [fom(a, cfg["t_train"])[0] for a in TRAIN_A]
     tests = [fom(a, cfg["t_test"]) for a in TEST_A]
     fom_seconds = time.perf_counter() - t0
-    root = comm.rank == 0
+    root = harness.is_root(comm)
     rows = []
     for r in cfg["r_values"]:
         basis = comm.bcast(lo.pod(np.hstack([s.Q for s in train]), r, blocks=train[0].blocks)
@@ -72,21 +67,19 @@ def main(argv=None):
             rows += _fit_and_score(train, [s for s, _ in tests], basis, galerkin, dt)
     if not root:
         return None
-    metrics = {"scene": "beam_unseen_ic", "n_dofs": int(train[0].n_states), "dt": dt,
-               "train_a": list(TRAIN_A), "test_a": list(TEST_A), "t_train": cfg["t_train"],
-               "t_end": cfg["t_test"], "quick": bool(args.quick), "fom_seconds": fom_seconds,
-               "fom_test_seconds": sum(s for _, s in tests), "paper_2r20": PAPER_2R20,
-               "roms": rows}
-    out.mkdir(parents=True, exist_ok=True)
-    lo.io_atomic.atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=1))
+    metrics = harness.metrics(
+        "beam_unseen_ic", error="state", quick=args.quick, roms=rows,
+        n_dofs=int(train[0].n_states), dt=dt, train_a=list(TRAIN_A), test_a=list(TEST_A),
+        t_train=cfg["t_train"], t_end=cfg["t_test"], fom_seconds=fom_seconds,
+        fom_test_seconds=sum(s for _, s in tests), paper_2r20=PAPER_2R20)
+    harness.write_metrics(out, metrics)
     render.error_vs_r(out / "error_vs_r.png", rows,
                       title="beam, unseen ICs a = 0.1, 0.6 (block POD of a = 0.2-0.5)")
-    print(f"{'method':>10} {'r':>3} {'scheme':>10} {'train':>9} {'test<=t_tr':>10} {'proj':>9} "
-          f"{'test<=t_end':>11} {'proj':>9}")
-    for x in rows:
-        print(f"{x['method']:>10} {x['r']:>3} {x.get('scheme', '-'):>10} {x['train_error']:9.2e} "
-              f"{x['test_error_train_window']:10.2e} {x['projection_error_test_train_window']:9.2e} "
-              f"{x['test_error']:11.2e} {x['projection_error_test']:9.2e}")
+    harness.summary(rows, [("method", "method"), ("r", "r"), ("scheme", "scheme"),
+                           ("train_error", "train"), ("test_error_train_window", "test<=t_tr"),
+                           ("projection_error_test_train_window", "proj"),
+                           ("test_error", "test<=t_end"), ("projection_error_test", "proj")],
+                    widths=[13, 3, 10, 9, 10, 9, 11, 9])
     return metrics
 
 
@@ -118,14 +111,14 @@ def _fit_and_score(train, tests, basis, galerkin, dt):
     rows = []
     for method, (rom, infer_s, scheme) in models.items():
         rec, seconds = run(rom, tests)
-        rows.append({"method": method, "r": basis.r, "scheme": scheme,
-                     "train_error": lo.relative_error(Q_train, run(rom, train)[0]),
-                     "test_error": lo.relative_error(Q_test, rec),
-                     "test_error_train_window": lo.relative_error(Q_test[:, early], rec[:, early]),
-                     "projection_error_test_train_window": basis.projection_error(Q_test[:, early]),
-                     "projection_error_test": basis.projection_error(Q_test),
-                     "infer_seconds": infer_s, "rom_seconds": seconds,
-                     "stable": bool(np.all(np.isfinite(rec)))})
+        rows.append(harness.rom_row(
+            method, basis.r, scheme=scheme,
+            train_error=lo.relative_error(Q_train, run(rom, train)[0]),
+            test_error=lo.relative_error(Q_test, rec),
+            test_error_train_window=lo.relative_error(Q_test[:, early], rec[:, early]),
+            projection_error_test_train_window=basis.projection_error(Q_test[:, early]),
+            projection_error_test=basis.projection_error(Q_test),
+            infer_seconds=infer_s, rom_seconds=seconds, stable=harness.stable(rec)))
     return rows
 
 

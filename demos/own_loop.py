@@ -31,18 +31,15 @@ recorded snapshots DIR/{train,test}_<integrator>.npz (re-fit them without the FO
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
 import dolfinx_lopinf as lo  # before dolfinx (the PyPI wheel loads its MPI first)
 from dolfinx_lopinf import render
 from dolfinx_lopinf.intrusive import dense_state_matrix
-from dolfinx_lopinf.io_atomic import atomic_write_text
+from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402
 import dolfinx.fem.petsc  # noqa: E402
@@ -200,7 +197,7 @@ def run_integrator(integrator, args, out):
     # reduced mass exactly I, which L-OpInf assumes (a black box, Euclidean POD, cannot).
     du, u_ = ufl.TrialFunction(V), ufl.TestFunction(V)
     mass = dense_state_matrix(RHO * ufl.inner(du, u_) * ufl.dx, V, rec_train.state_map)
-    if comm.rank != 0:
+    if not harness.is_root(comm):
         return None
     train.save(out / f"train_{integrator}.npz")   # to re-fit later without the FOM
     test.save(out / f"test_{integrator}.npz")
@@ -217,15 +214,15 @@ def run_integrator(integrator, args, out):
                 fit_s = time.perf_counter() - t0
                 pred = model.predict(n_test, inputs=test_load)     # inputs at t_0 .. t_n
                 refit = model.predict(n_train, inputs=train_load)
-                stable = bool(np.all(np.isfinite(pred.Y)))
-                rows.append({
-                    "integrator": integrator, "basis": basis_name, "mass": mass_model, "r": r,
-                    "requested": scheme, "mass_chosen": model.report["mass"],
-                    "scheme": model.scheme, "scheme_errors": model.report["scheme_errors"],
-                    "test_tip_error": lo.relative_error(test.Y, pred.Y) if stable else float("inf"),
-                    "train_tip_error": lo.relative_error(train.Y, refit.Y),
-                    "projection_error_test": model.basis.projection_error(test.Q),
-                    "fit_seconds": fit_s, "rom_seconds": pred.seconds, "stable": stable})
+                stable = harness.stable(pred.Y)
+                rows.append(harness.rom_row(
+                    "lopinf", r, integrator=integrator, basis=basis_name, mass=mass_model,
+                    requested=scheme, mass_chosen=model.report["mass"],
+                    scheme=model.scheme, scheme_errors=model.report["scheme_errors"],
+                    test_error=lo.relative_error(test.Y, pred.Y) if stable else float("inf"),
+                    train_error=lo.relative_error(train.Y, refit.Y),
+                    projection_error_test=model.basis.projection_error(test.Q),
+                    infer_seconds=fit_s, rom_seconds=pred.seconds, stable=stable))
                 preds[(basis_name, mass_model, scheme, r)] = pred
     r_show = 4 if 4 in args.r else args.r[-1]
     err = {(x["basis"], x["mass"], x["requested"]): x for x in rows if x["r"] == r_show}
@@ -237,7 +234,7 @@ def run_integrator(integrator, args, out):
         label = ("Euclidean POD" if b == "euclidean" else "mass-orth. POD") \
             + (", Mh = I" if mm == "identity" else f", mass auto ({x['mass_chosen']})") \
             + f", {s}" + (f" ({x['scheme']})" if s == "auto" else "")
-        series[f"{label}: {x['test_tip_error']:.1e}"] = preds[(b, mm, s, r_show)].Y[0]
+        series[f"{label}: {x['test_error']:.1e}"] = preds[(b, mm, s, r_show)].Y[0]
     render.curves(out / f"tip_{integrator}.png", test.times, series,
                   colors=["C7", "C0", "C3", "C2", "C4", "C1"], ylabel="tip deflection u_z [m]",
                   title=f"{integrator} loop, {train.n_states} dofs: unseen body force, r = {r_show}")
@@ -249,15 +246,15 @@ def run_integrator(integrator, args, out):
                         f"(FOM max {np.max(np.abs(fom_y)):.1e} m)")
     print(f"[{integrator}] n = {train.n_states} dofs, FOM {fom_test_s:.1f} s for {n_test} steps "
           f"(train {fom_train_s:.1f} s for {n_train}), {comm.size} rank(s)")
-    print(f"{'basis':>6} {'Mh':>8} {'r':>2} {'requested':>10} {'chose':>10} {'unseen err':>10} "
-          f"{'train err':>9} {'proj err':>8} {'held-back nm/fd':>17} {'fit s':>5} {'ROM ms':>6}")
-    for x in rows:
-        se = x["scheme_errors"]
-        mh = x["mass"] if x["mass"] != "auto" else f"auto:{x['mass_chosen'][:3]}"
-        print(f"{x['basis'][:6]:>6} {mh:>8} {x['r']:>2} {x['requested']:>10} {x['scheme']:>10} "
-              f"{x['test_tip_error']:10.2e} {x['train_tip_error']:9.2e} "
-              f"{x['projection_error_test']:8.1e} {se['newmark']:8.2e} {se['continuous']:8.2e} "
-              f"{x['fit_seconds']:5.2f} {x['rom_seconds'] * 1e3:6.1f}")
+    harness.summary([dict(x, basis=x["basis"][:6], held_back_newmark=x["scheme_errors"]["newmark"],
+                          held_back_fd=x["scheme_errors"]["continuous"],
+                          mass=x["mass"] if x["mass"] != "auto" else f"auto:{x['mass_chosen'][:3]}")
+                     for x in rows],
+                    [("basis", "basis"), ("mass", "Mh"), ("r", "r"), ("requested", "requested"),
+                     ("scheme", "chose"), ("test_error", "unseen err"), ("train_error", "train err"),
+                     ("projection_error_test", "proj err"), ("held_back_newmark", "held-back nm"),
+                     ("held_back_fd", "held-back fd"), ("infer_seconds", "fit s"),
+                     ("rom_seconds", "ROM s")], widths=[6, 8, 2, 10, 10, 10, 9, 9, 12, 12, 9, 9])
     return {"integrator": integrator, "n_dofs": int(train.n_states), "dt": dt,
             "cells": list(cells), "t_train": t_train, "t_end": t_test,
             "fom_seconds": fom_test_s, "fom_train_seconds": fom_train_s,
@@ -265,25 +262,26 @@ def run_integrator(integrator, args, out):
             "max_abs_tip_train": float(np.max(np.abs(train.Y))), "roms": rows}
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def _options(parser):
     parser.add_argument("--integrator", choices=("newmark", "gen-alpha", "both"), default="both")
-    parser.add_argument("--quick", action="store_true", help="coarse mesh, short runs (~20 s)")
-    parser.add_argument("--out", default="results/own_loop")
     parser.add_argument("--r", default="2,4,8", help="reduced dimensions, comma-separated")
-    args = parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = harness.parse(__doc__, argv, out="results/own_loop", quick="coarse mesh, short runs (~20 s)",
+                         extra=_options)
     args.r = [int(x) for x in args.r.split(",")]
-    out = Path(args.out)
-    if MPI.COMM_WORLD.rank == 0:
+    out = args.out
+    if harness.is_root():
         out.mkdir(parents=True, exist_ok=True)
     integrators = ("newmark", "gen-alpha") if args.integrator == "both" else (args.integrator,)
     results = [run_integrator(i, args, out) for i in integrators]
-    if MPI.COMM_WORLD.rank != 0:
+    if not harness.is_root():
         return None
-    metrics = {"scene": "own_loop_cantilever", "quick": args.quick, "ranks": MPI.COMM_WORLD.size,
-               "loops": {x["integrator"]: x for x in results}}
-    atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=1))
+    # one ROM table per loop (integrator); each row's errors are tip (output) errors
+    metrics = harness.metrics("own_loop_cantilever", error="output", quick=args.quick, roms=None,
+                              ranks=MPI.COMM_WORLD.size, loops={x["integrator"]: x for x in results})
+    harness.write_metrics(out, metrics)
     return metrics
 
 

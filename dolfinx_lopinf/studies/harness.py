@@ -90,14 +90,17 @@ def rom_row(method: str, r: int, *, train_error, test_error, stable: bool, **fie
             "test_error": test_error, **fields, "stable": bool(stable)}
 
 
-def metrics(scene: str, *, error: str, quick: bool, roms: list, **fields) -> dict:
+def metrics(scene: str, *, error: str, quick: bool, roms: list | None, **fields) -> dict:
     """The metrics dict of one demo run: scene, error kind and its definition, the stable
-    definition, quick flag, the scene's fields and its ROM rows."""
+    definition, quick flag, the scene's fields and its ROM rows (``roms=None``: the scene
+    keeps its rows elsewhere, e.g. one table per loop)."""
     if error not in ERRORS:
         raise ValueError(f"error must be one of {sorted(ERRORS)}, got {error!r}")
-    return {"scene": scene, **fields, "quick": bool(quick), "error": error,
-            "error_definition": ERRORS[error], "stable_definition": STABLE_DEFINITION,
-            "roms": roms}
+    out = {"scene": scene, **fields, "quick": bool(quick), "error": error,
+           "error_definition": ERRORS[error], "stable_definition": STABLE_DEFINITION}
+    if roms is not None:
+        out["roms"] = roms
+    return out
 
 
 def _plain(obj):
