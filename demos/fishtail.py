@@ -26,9 +26,7 @@ import numpy as np
 import dolfinx_lopinf as lo
 from dolfinx_lopinf import render
 from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.fom import (EnergyProbe, FieldSnapshots, OutputProbe, Progress, StateMap,
-                                gather_states, output_matrix_in_state, run)
-from dolfinx_lopinf.integrators import NewmarkIntegrator, rigid_body_modes
+from dolfinx_lopinf.fom import FieldSnapshots, StateMap, gather_states, output_matrix_in_state
 from dolfinx_lopinf.streaming import StreamingPOD
 from dolfinx_lopinf.intrusive import reduced_matrix
 from dolfinx_lopinf.scenes import fishtail as scene
@@ -38,20 +36,15 @@ TRAIN_WINDOW = {"sine": 0.4, "sigmoid": 1.0}
 
 
 def run_fom(tail, nm, u_fn, t_end, comm, *, spod=None, t_keep=0.0, snap_steps=()):
-    """Newmark to t_end through the one time loop. States up to t_keep go to ``spod`` (an
-    on-disk StreamingPOD, so memory does not grow with n x K); the POI output and the energy
-    are kept every step, full fields only at ``snap_steps`` (for the renders)."""
-    n_steps = int(round(t_end / scene.DT))
-    nm.initialize(tail.chamber_pressures(float(u_fn(0.0))))
-    y, energy, fields = OutputProbe(tail.output_matrix), EnergyProbe(), FieldSnapshots(snap_steps)
-    sinks = [y, energy, fields]
-    if spod is not None:
-        sinks.insert(0, spod.sink(until_step=int(round(t_keep / scene.DT))))
-    if harness.is_root(comm) and sys.stderr.isatty():
-        sinks.append(Progress(every=50))
-    loop = run(nm, n_steps, sinks=sinks, inputs=lambda t: tail.chamber_pressures(float(u_fn(t))))
-    Y = np.array([v[0] for v in y.values])
-    return Y, np.array(energy.values), loop["seconds"], fields.fields
+    """Newmark to t_end (the scene's :func:`simulate`, the one time loop). States up to t_keep
+    go to ``spod`` (an on-disk StreamingPOD, so memory does not grow with n x K); the POI
+    output and the energy are kept every step, full fields only at ``snap_steps`` (for the
+    renders)."""
+    fields = FieldSnapshots(snap_steps)
+    sinks = [fields] if spod is None else [spod.sink(until_step=int(round(t_keep / scene.DT))), fields]
+    Y, E, seconds = scene.simulate(tail, nm, u_fn, t_end, sinks=sinks,
+                                   progress=harness.is_root(comm) and sys.stderr.isatty())
+    return Y, E, seconds, fields.fields
 
 
 def _options(parser):
@@ -94,9 +87,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     tail = scene.build(scene.SIZES[size], comm, hull_density=args.hull_density)
     V = tail.system.V
-    nm = NewmarkIntegrator(tail.system, dt, rayleigh=scene.RAYLEIGH, input_forms=tail.input_forms,
-                           solver=args.solver,
-                           near_nullspace=rigid_body_modes(V) if args.solver == "cg" else None)
+    nm = scene.integrator(tail, dt, solver=args.solver)
     setup_s = time.perf_counter() - t0
     n_dofs = V.dofmap.index_map.size_global * 3
     if comm.rank == 0:

@@ -75,6 +75,39 @@ def _collect():
         MPI.COMM_WORLD.Barrier()
 
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load_demo(name):
+    """The module demos/<name>.py (demos are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"demo_{name}", os.path.join(ROOT, "demos", f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def quick_demo(tmp_path_factory):
+    """``quick_demo(name) -> (out_dir, metrics)``: ``demos/<name>.py --quick`` run in-process
+    once per session (its ``main`` returns the metrics; they are read back from the written
+    metrics.json, as a user would), shared by the demo's own tests and the serial half of the
+    MPI check."""
+    import json
+
+    pytest.importorskip("dolfinx_lopinf._dolfinx")
+    cache = {}
+
+    def run(name):
+        if name not in cache:
+            out = tmp_path_factory.mktemp(f"{name}_quick")
+            load_demo(name).main(["--quick", "--out", str(out)])
+            with open(out / "metrics.json") as f:
+                cache[name] = (out, json.load(f))
+        return cache[name]
+
+    return run
+
+
 @pytest.fixture(scope="session")
 def beam():
     """The paper's beam (200 Hermite nodes, state in R^400)."""

@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 
-import dolfinx_lopinf as lo
+import dolfinx_lopinf  # noqa: F401  (first: the PyPI wheel orders MPI ahead of dolfinx)
 from dolfinx_lopinf._dolfinx import MPI, dolfinx, ufl
 import dolfinx.fem.petsc
 from dolfinx_lopinf.basis import pod
@@ -27,7 +27,7 @@ local = []
 with StreamingPOD(V, capacity=30, weight=M, chunk=17) as spod:
     for k in range(30):
         t = 0.1 * k
-        q.interpolate(lambda x: np.vstack([np.sin(3 * x[0] + t), np.cos(2 * t) * x[1] * x[2],
+        q.interpolate(lambda x, t=t: np.vstack([np.sin(3 * x[0] + t), np.cos(2 * t) * x[1] * x[2],
                                            np.exp(-t) * x[0] ** 2 + np.sin(t) * x[2]]))
         spod.append(q)
         local.append(q.x.array[:n_owned].copy())

@@ -17,13 +17,13 @@ def small():
 
 
 def _tip_history(f, nm, u, steps=40):
+    """Newmark through the one time loop, with an output and an energy probe."""
+    from dolfinx_lopinf.fom import EnergyProbe, OutputProbe, run
+
     nm.initialize(f.chamber_pressures(0.0))
-    ys, energies = [], []
-    for k in range(1, steps + 1):
-        nm.step(f.chamber_pressures(u))
-        ys.append(MPI.COMM_WORLD.allreduce(f.output_matrix @ nm.q.x.array)[0])
-        energies.append(nm.energy())
-    return np.array(ys), np.array(energies)
+    y, e = OutputProbe(f.output_matrix), EnergyProbe()
+    run(nm, steps, sinks=[y, e], inputs=lambda t: f.chamber_pressures(u))
+    return np.array(y.values)[1:, 0], np.array(e.values[1:])
 
 
 def test_geometry_tags_and_materials(small):
@@ -47,17 +47,8 @@ def test_chamber_pressure_bends_the_tail_antisymmetrically(small):
     assert e_plus[-1] > 0
 
 
-def test_fishtail_demo_quick(tmp_path):
-    import json
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parents[1] / "demos" / "fishtail.py"
-    proc = subprocess.run([sys.executable, str(script), "--quick", "--out", str(tmp_path)],
-                          capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    m = json.loads((tmp_path / "metrics.json").read_text())
+def test_fishtail_demo_quick(quick_demo):
+    tmp_path, m = quick_demo("fishtail")
     lop = [r for r in m["roms"] if r["method"] == "lopinf"]
     assert all(r["min_eig_K"] > 0 and r["min_eig_C"] > 0 and r["stable"] for r in lop)
     by_r = {r["r"]: r["output_errors"] for r in lop}

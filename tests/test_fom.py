@@ -208,3 +208,60 @@ def test_reprojection_matches_projected_trajectory_for_a_full_basis(beam):
     Qh = reprojected_trajectory(it, V_full, M, beam.state_map, snaps.Q[:, 0], snaps.V[:, 0], 20)
     ref = V_full.T @ M @ snaps.Q
     assert np.abs(Qh - ref).max() <= 1e-8 * np.abs(ref).max()
+
+
+def _option_names(prefix):
+    return [k for k in PETSc.Options().getAll() if k.startswith(prefix)]
+
+
+def test_integrators_share_one_protocol_and_leave_no_petsc_options(beam):
+    """Midpoint (linear and Newton) and Newmark are Integrators; each gets its own options
+    prefix; the options are gone from the global database once read; close() destroys."""
+    from dolfinx_lopinf.integrators import Integrator, NewmarkIntegrator
+
+    msh = dolfinx.mesh.create_interval(MPI.COMM_WORLD, 50, [-20.0, 20.0])
+    V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))
+    x = V.tabulate_dof_coordinates()[:, 0]
+    with lo.MidpointIntegrator(beam.system, scene.DT, petsc_options={"mat_mumps_icntl_14": 40}) as lin, \
+            lo.MidpointIntegrator(_sine_gordon(V), 0.1, petsc_options={"snes_max_it": 30}) as newton, \
+            NewmarkIntegrator(beam.system, scene.DT, petsc_options={"ksp_error_if_not_converged": True}) as nm:
+        prefixes = {lin.prefix, newton.prefix, nm.prefix}
+        assert len(prefixes) == 3 and all(p.startswith("lopinf_") for p in prefixes)
+        assert [i.scheme for i in (lin, newton, nm)] == ["midpoint", "midpoint", "newmark"]
+        for it in (lin, newton, nm):
+            assert isinstance(it, Integrator)
+        assert not _option_names(lin.prefix) and not _option_names(nm.prefix)
+        assert _option_names(newton.prefix)  # SNES: kept until its first step has read them
+        newton.initialize(np.zeros_like(x), 4.0 / np.cosh(x))
+        assert newton.step() is newton.q
+        assert not _option_names(newton.prefix)
+        nm.initialize()
+        assert nm.step() is nm.q and nm.energy() == 0.0
+    assert lin._ksp is None and newton._snes is None and nm.M is None
+
+
+def test_one_loop_drives_both_schemes_with_sinks(beam):
+    """fom.run(integrator, n, sinks=...) is the loop run(system, ...) uses: the same states,
+    outputs and energies; it drives Newmark too."""
+    from dolfinx_lopinf.fom import EnergyProbe, FieldSnapshots, OutputProbe, run
+    from dolfinx_lopinf.integrators import NewmarkIntegrator
+
+    q0, v0 = beam.initial_state()
+    snaps, info = lo.run(beam.system, q0, v0, scene.DT, 20 * scene.DT, output_matrix=beam.output_matrix,
+                         state_map=beam.state_map, progress=False)
+    with lo.MidpointIntegrator(beam.system, scene.DT) as it:
+        it.initialize(q0, v0)
+        y, e, fields = OutputProbe(beam.output_matrix), EnergyProbe(every=5), FieldSnapshots([0, 20])
+        calls = []
+        out = run(it, 20, sinks=[y, e, fields, lambda s: calls.append(s.k)])
+        assert out["steps"] == 20 and calls == list(range(21))
+        assert np.array_equal(np.array(y.values).T, snaps.Y)
+        assert np.array_equal(e.values, info["energy"][::5])
+        assert set(fields.fields) == {0, 20}
+    with NewmarkIntegrator(beam.system, scene.DT) as nm:
+        nm.initialize()
+        e = EnergyProbe()
+        run(nm, 3, sinks=[e])
+        assert e.values == [0.0] * 4  # from rest, no input: stays at rest
+    with pytest.raises(ValueError, match="Integrator"):
+        run(object(), 3)

@@ -53,15 +53,15 @@ def test_recorder_two_ranks_equals_serial(tmp_path):
         assert np.abs(a[key] - b[key]).max() <= 1e-12 * max(np.abs(a[key]).max(), 1.0), key
 
 
-def _fom_output_difference(demo, tmp_path):
+def _fom_output_difference(demo, serial_out, parallel_out):
     """Relative max difference of the FOM outputs the serial and 2-rank runs saved (the data
     every ROM of the demo is fitted to), or None where the demo saves none."""
     if demo != "fishtail":
         return None
     diffs = []
     for name in ("sine", "step"):
-        ya = np.load(tmp_path / "serial" / f"fom_{name}.npz")["Y"]
-        yb = np.load(tmp_path / "parallel" / f"fom_{name}.npz")["Y"]
+        ya = np.load(serial_out / f"fom_{name}.npz")["Y"]
+        yb = np.load(parallel_out / f"fom_{name}.npz")["Y"]
         diffs.append(np.abs(ya - yb).max() / np.abs(ya).max())
     return max(diffs)
 
@@ -88,24 +88,24 @@ def _error_tolerance(row, singular_values, data_difference):
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code", "fishtail"])
-def test_quick_demos_two_ranks_equal_serial(demo, tmp_path):
+def test_quick_demos_two_ranks_equal_serial(demo, tmp_path, quick_demo):
     """Every demo runs under mpiexec -n 2 and reports the serial ROM errors, within what
-    the rounding of its FOM data can move them (see ``_error_tolerance``)."""
+    the rounding of its FOM data can move them (see ``_error_tolerance``). The serial run is
+    the session's in-process quick run (``quick_demo``), shared with the demo's own tests."""
     import json
 
     mpiexec = _mpiexec()
     if mpiexec is None:
         pytest.skip("no mpiexec")
     script = Path(__file__).resolve().parents[1] / "demos" / f"{demo}.py"
-    runs = {}
-    for name, prefix in (("serial", []), ("parallel", [mpiexec, "-n", "2"])):
-        out = tmp_path / name
-        proc = subprocess.run(prefix + [sys.executable, str(script), "--quick", "--out", str(out)],
-                              capture_output=True, text=True, timeout=600)
-        assert proc.returncode == 0, proc.stderr[-3000:]
-        runs[name] = json.loads((out / "metrics.json").read_text())
+    serial_out, serial = quick_demo(demo)
+    out = tmp_path / "parallel"
+    proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    runs = {"serial": serial, "parallel": json.loads((out / "metrics.json").read_text())}
     assert runs["serial"]["n_dofs"] == runs["parallel"]["n_dofs"]
-    delta = _fom_output_difference(demo, tmp_path)
+    delta = _fom_output_difference(demo, serial_out, out)
     if delta is not None:  # the FOM data themselves: the Cholesky of M + dt/2 C + dt^2/4 K
         assert delta <= 1e-6, delta  # (1e6 stiffness and density contrasts) rounds at ~1e-8
     sv = runs["serial"].get("pod_singular_values")

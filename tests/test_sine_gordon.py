@@ -1,8 +1,5 @@
 """Sine-Gordon: FOM against exact solutions, gray-box nonlinearity, wave ROM, hyper-reduction."""
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -101,11 +98,8 @@ def test_wave_rom_conserves_energy_and_ecsw_keeps_structure():
     assert lo.relative_error(tr.Qh[:, :500], tr2.Qh[:, :500]) < 5e-2
 
 
-def test_sine_gordon_demo_quick(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "demos" / "sine_gordon.py"), "--quick",
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    m = json.loads((tmp_path / "metrics.json").read_text())
+def test_sine_gordon_demo_quick(quick_demo):
+    tmp_path, m = quick_demo("sine_gordon")
     assert m["scene"] == "sine_gordon" and m["fom_error_vs_exact"] < 5e-3
     best = min(r["test_error"] for r in m["roms"] if r["method"] == "lopinf")
     assert best < 2e-2

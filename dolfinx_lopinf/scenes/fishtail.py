@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .._dolfinx import MPI, PETSc, dolfinx, ufl
-from ..fom import point_output_matrix
+from ..fom import EnergyProbe, OutputProbe, Progress, point_output_matrix, run
+from ..integrators import NewmarkIntegrator, rigid_body_modes
 from ..lagrangian import LagrangianSystem
 from . import fishtail_geometry as geometry
 
@@ -136,3 +137,30 @@ def build(lc: float = 0.007, comm=MPI.COMM_WORLD, *, degree: int = 2,
                    -ufl.inner(n, v) * ds(tags["chamber_right"])]
     E = point_output_matrix(V, np.array([POI]), component=0)
     return Fishtail(system, input_forms, E, cell_tags, facet_tags)
+
+
+def integrator(tail: Fishtail, dt: float = DT, *, solver: str = "direct") -> NewmarkIntegrator:
+    """The fishtail's Newmark integrator: Rayleigh damping, the two chamber inputs; ``solver``
+    ``"direct"`` (MUMPS) or ``"cg"`` (CG + GAMG with the rigid-body near-nullspace)."""
+    V = tail.system.V
+    return NewmarkIntegrator(tail.system, dt, rayleigh=RAYLEIGH, input_forms=tail.input_forms,
+                             solver=solver,
+                             near_nullspace=rigid_body_modes(V) if solver == "cg" else None)
+
+
+def simulate(tail: Fishtail, nm: NewmarkIntegrator, u, t_end: float, *, sinks=(),
+             progress: bool = False):
+    """Newmark from rest under the chamber input ``u(t)`` to ``t_end`` through the one time
+    loop (:func:`dolfinx_lopinf.fom.run`): the POI output and the energy at every step, and
+    whatever the extra ``sinks`` record (e.g. ``StreamingPOD.sink``, ``FieldSnapshots``).
+
+    Returns:
+        ``(Y, E, seconds)``: output and energy at t = 0, dt, ..., t_end and the loop's wall
+        time (max over ranks).
+    """
+    n_steps = int(round(t_end / nm.dt))
+    nm.initialize(tail.chamber_pressures(float(u(0.0))))
+    y, energy = OutputProbe(tail.output_matrix), EnergyProbe()
+    every = [*sinks, y, energy] + ([Progress(every=50)] if progress else [])
+    loop = run(nm, n_steps, sinks=every, inputs=lambda t: tail.chamber_pressures(float(u(t))))
+    return np.array([v[0] for v in y.values]), np.array(energy.values), loop["seconds"]
