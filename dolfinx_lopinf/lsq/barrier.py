@@ -76,7 +76,7 @@ class Barrier(Strategy):
         """Damped Newton on F(x) = t f(x) + phi(x) (at most 30 steps): (x, steps)."""
         H, h = problem.normal_equations
         ix, eye = problem.index, problem.eps * np.eye(problem.r)
-        for steps in range(1, 31):
+        for steps in range(1, 31):  # noqa: B007 - the count is returned
             S = ix.blocks(x) - eye
             g_phi, H_phi = _barrier_derivatives(ix, [np.linalg.inv(Sk) for Sk in S])
             grad = t * 2.0 * (H @ x + h) + g_phi
