@@ -9,6 +9,10 @@
 If you know your loop's integrator, say so - ``SnapshotRecorder(u, scheme="newmark")`` - and
 the snapshots carry it (``snaps.scheme``) for the fit; leave it None when you do not know.
 
+In the package's own time loop the recorder is a sink:
+``fom.run(integrator, n, sinks=[rec.sink(velocity=True)])`` (``scheme`` defaults to the
+integrator's then).
+
 Each rank stores only its owned dofs; :meth:`SnapshotRecorder.snapshots` gathers them once
 into global dof order, so the arrays are identical for any number of ranks.
 """
@@ -164,6 +168,21 @@ class SnapshotRecorder:
             self._inputs.append(inputs)
         if y is not None:
             self._outputs.append(y)
+
+    def sink(self, *, every: int = 1, until_step: int | None = None, velocity: bool = False,
+             inputs=None):
+        """A sink of :func:`dolfinx_lopinf.fom.run_loop`: :meth:`record` the integrator's
+        state (and ``velocity``, and ``inputs(t)`` if given) at every ``every``-th step up to
+        ``until_step``. A recorder made without ``scheme`` takes the integrator's."""
+        from .fom import Every
+
+        def record(s):
+            if self.scheme is None:
+                self.scheme = check_scheme(getattr(s.integrator, "scheme", None), "integrator.scheme")
+            self.record(s.t, s.q, velocity=s.velocity() if velocity else None,
+                        inputs=None if inputs is None else inputs(s.t))
+
+        return Every(record, every=every, until_step=until_step)
 
     def snapshots(self) -> Snapshots | None:
         """Gather everything to rank 0 as :class:`Snapshots` (None on the other ranks)."""

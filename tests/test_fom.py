@@ -265,3 +265,21 @@ def test_one_loop_drives_both_schemes_with_sinks(beam):
         assert e.values == [0.0] * 4  # from rest, no input: stays at rest
     with pytest.raises(ValueError, match="Integrator"):
         run(object(), 3)
+
+
+def test_snapshot_recorder_is_a_sink_of_the_loop(beam):
+    """SnapshotRecorder.sink(): the same states and velocities as run(system, ...), and the
+    integrator's scheme."""
+    from dolfinx_lopinf.fom import run
+
+    q0, v0 = beam.initial_state()
+    snaps, _ = lo.run(beam.system, q0, v0, scene.DT, 10 * scene.DT, record_every=2,
+                      state_map=beam.state_map, progress=False)
+    rec = lo.SnapshotRecorder(beam.system.V, state_map=beam.state_map)
+    with lo.MidpointIntegrator(beam.system, scene.DT) as it:
+        it.initialize(q0, v0)
+        run(it, 10, sinks=[rec.sink(every=2, velocity=True)])
+    got = rec.snapshots()
+    if got is not None:  # rank 0
+        assert got.scheme == "midpoint" and np.array_equal(got.Q, snaps.Q)
+        assert np.array_equal(got.V, snaps.V) and np.allclose(got.times, snaps.times, rtol=1e-12)
