@@ -1,9 +1,6 @@
 """The beam demo end to end in quick mode: it runs, writes the shared metrics schema and
 figures, and its ROMs carry the structure they promise."""
 
-import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -117,13 +114,10 @@ def test_stability_cantilever_is_the_demo_cantilever():
     assert np.array_equal(runs[0].Q, runs[1].Q) and np.array_equal(runs[0].U, runs[1].U)
 
 
-def test_beam_unseen_ic_demo_quick(tmp_path):
+def test_beam_unseen_ic_demo_quick(quick_demo):
     """Several trajectories through lo.fit: the demo runs, every ROM is finite, and no ROM beats
     the projection floor of its basis on the test trajectories."""
-    proc = subprocess.run([sys.executable, str(ROOT / "demos" / "beam_unseen_ic.py"), "--quick",
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    m = json.loads((tmp_path / "metrics.json").read_text())
+    tmp_path, m = quick_demo("beam_unseen_ic")
     assert m["train_a"] == [0.2, 0.3, 0.4, 0.5] and m["test_a"] == [0.1, 0.6]
     assert {x["method"] for x in m["roms"]} == {"lopinf", "lopinf_fd", "lopinf_mass_I", "intrusive"}
     for x in m["roms"]:
