@@ -753,6 +753,34 @@ def run_loop(integrator, n_steps: int, sinks=(), *, inputs=None, first_step: int
 
 # -- the FOM run of a LagrangianSystem: the time loop with the recorder's sinks -------------
 
+def _check_state_map(state_map, n_global: int) -> None:
+    if not isinstance(state_map, StateMap):
+        raise InputError(f"state_map must be a StateMap, got {type(state_map).__name__}")
+    order = np.asarray(state_map.order)
+    scale = np.asarray(state_map.scale, dtype=float)
+    if order.shape != (n_global,) or scale.shape != (n_global,):
+        raise InputError(f"state_map has {order.shape} rows and {scale.shape} scales; the "
+                         f"space has {n_global} dofs")
+    if not np.array_equal(np.sort(order), np.arange(n_global)):
+        raise InputError("state_map.order is not a permutation of the global dofs 0..n-1")
+    if not np.all(np.isfinite(scale) & (scale != 0)):
+        raise InputError("state_map.scale must be finite and nonzero")
+
+
+def _checkpoint_files(checkpoint, comm) -> _CheckpointFiles:
+    """This rank's checkpoint files under the prefix (collective check of its directory)."""
+    prefix = Path(checkpoint)
+    directory = prefix.parent
+    problem = None
+    if not directory.is_dir():
+        problem = (f"checkpoint = {str(checkpoint)!r}: the directory {directory} does not exist "
+                   "(create it first)")
+    elif not os.access(directory, os.W_OK | os.X_OK):
+        problem = f"checkpoint = {str(checkpoint)!r}: the directory {directory} is not writable"
+    _collective(comm, problem)
+    return _CheckpointFiles(prefix, comm.rank)
+
+
 def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map, energy_every,
           energy_until, integrator, checkpoint, checkpoint_every) -> dict:
     """Every input of :func:`run` checked before any work (all ranks reach the same verdict);
@@ -805,17 +833,7 @@ def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map
             problem = "output_matrix contains NaN or inf"
     _collective(comm, problem)
     if state_map is not None:
-        if not isinstance(state_map, StateMap):
-            raise InputError(f"state_map must be a StateMap, got {type(state_map).__name__}")
-        order = np.asarray(state_map.order)
-        scale = np.asarray(state_map.scale, dtype=float)
-        if order.shape != (n_global,) or scale.shape != (n_global,):
-            raise InputError(f"state_map has {order.shape} rows and {scale.shape} scales; the "
-                             f"space has {n_global} dofs")
-        if not np.array_equal(np.sort(order), np.arange(n_global)):
-            raise InputError("state_map.order is not a permutation of the global dofs 0..n-1")
-        if not np.all(np.isfinite(scale) & (scale != 0)):
-            raise InputError("state_map.scale must be finite and nonzero")
+        _check_state_map(state_map, n_global)
     if integrator is not None:
         if not isinstance(integrator, MidpointIntegrator) or integrator.system is not system:
             raise InputError("integrator must be a MidpointIntegrator of this same system")
@@ -824,17 +842,7 @@ def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map
     files = None
     if checkpoint is not None:
         checkpoint_every = _count(checkpoint_every, "checkpoint_every", 1)
-        prefix = Path(checkpoint)
-        directory = prefix.parent
-        problem = None
-        if not directory.is_dir():
-            problem = (f"checkpoint = {str(checkpoint)!r}: the directory {directory} does not exist "
-                       "(create it first)")
-        elif not os.access(directory, os.W_OK | os.X_OK):
-            problem = f"checkpoint = {str(checkpoint)!r}: the directory {directory} is not writable"
-        _collective(comm, problem)
-        files = _CheckpointFiles(prefix, comm.rank)
-
+        files = _checkpoint_files(checkpoint, comm)
     return dict(dt=dt, t_end=t_end, n_steps=n_steps, record_every=record_every,
                 n_state_steps=n_state_steps, n_energy_steps=n_energy_steps,
                 energy_every=energy_every, n_owned=n_owned, n_global=n_global, files=files,
