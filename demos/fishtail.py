@@ -116,23 +116,14 @@ def main(argv=None):
                             n_end // 2, n_end]
             fields = {k: v for k, v in fields.items() if k in set(render_steps + gif_steps)}
         fom[name] = dict(Y=Y, E=E, seconds=seconds, fields=fields)
-        if comm.rank == 0:  # keep the FOM's outputs whatever happens later
+        if harness.is_root(comm):  # keep the FOM's outputs whatever happens later
             out.mkdir(parents=True, exist_ok=True)
             np.savez(out / f"fom_{name}.npz", t=dt * np.arange(len(Y)), Y=Y, E=E, seconds=seconds)
-        if comm.rank == 0:
             print(f"FOM {name}: {int(round(t_end / dt))} steps in {seconds:.1f} s, "
                   f"max |y| = {np.abs(Y).max():.3e} m", flush=True)
         if name == args.train:  # basis right away: a training run too poor for r fails fast
-            t0 = time.perf_counter()
-            rank = spod.numerical_rank()
-            if rank < max(r_values) and comm.rank == 0:
-                print(f"the training snapshots have numerical rank {rank}: r <= {rank} only")
-            r_values = [r for r in r_values if r <= rank]
-            basis_local, Qh_full, pod_lam = spod.compute(max(r_values))
-            snapshot_disk = comm.allreduce(spod.disk_bytes)
-            spod.close()
-            V_all = comm.bcast(gather_states(V, basis_local, state_map))  # n x r_max, not n x K
-            pod_s = time.perf_counter() - t0
+            r_values, V_all, Qh_full, pod_lam, snapshot_disk, pod_s = _training_basis(
+                spod, r_values, V, state_map, comm)
 
     # --- operators from the training run only ------------------------------------------------
     train = fom[args.train]
@@ -163,36 +154,13 @@ def main(argv=None):
         lopinf = lo.LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=Eh, scheme="newmark")
         intrusive = lo.LagrangianROM(K=Kg, M=Mg, C=Cg, B=Bg, E=Eg, scheme="newmark")
         for method, rom in (("lopinf", lopinf), ("intrusive", intrusive)):
-            row = {"method": method, "r": r, "infer_seconds": infer_s if method == "lopinf" else 0.0,
-                   "output_errors": {}, "rom_seconds_by_input": {}}
-            outputs = []
-            for name in inputs:
-                n = int(round(t_end / dt))
-                tr = rom.simulate(np.zeros(r), np.zeros(r), dt, n, inputs=lambda t, name=name: np.array([scene.INPUTS[name](t)]))
-                y_fom = fom[name]["Y"]
-                row["output_errors"][name] = lo.relative_error(y_fom, tr.Y[0])
-                row.setdefault("trajectories", {})[name] = tr.Y[0]
-                row["rom_seconds_by_input"][name] = tr.seconds
-                outputs.append(tr.Y[0])
-                e_rom = 0.5 * np.einsum("ik,ij,jk->k", tr.Vh, Mg, tr.Vh) + 0.5 * np.einsum("ik,ij,jk->k", tr.Qh, Kg, tr.Qh)
-                row.setdefault("energy_errors", {})[name] = float(
-                    np.abs(e_rom - fom[name]["E"]).max() / np.abs(fom[name]["E"]).max())
-                if r == r_values[-1] or r == 2:
-                    rom_plot[(method, r, name)] = (tr, Vr, e_rom)
-            row["train_error"] = row["output_errors"][args.train]
-            unseen = [v for k, v in row["output_errors"].items() if k != args.train]
-            if unseen:
-                row["test_error"] = max(unseen)
-            else:  # one input only: the training input after its training window
-                n_train_steps = int(round(t_train / dt))
-                row["test_error"] = lo.relative_error(fom[args.train]["Y"][n_train_steps:],
-                                                      row["trajectories"][args.train][n_train_steps:])
-            row.pop("trajectories")
-            row["rom_seconds"] = max(row["rom_seconds_by_input"].values())  # the slowest input
-            row["stable"] = harness.stable(np.concatenate(outputs))
+            row, plots = _score(method, rom, r, Mg, Kg, fom, inputs, args.train, t_train, t_end)
+            row["infer_seconds"] = infer_s if method == "lopinf" else 0.0
             if method == "lopinf":
                 row.update(min_eig_K=ops.certificate["min_eig_K"], min_eig_C=ops.certificate["min_eig_C"],
                            solver=ops.certificate["solver"])
+            if r == r_values[-1] or r == 2:
+                rom_plot.update({(method, r, name): (tr, Vr, e_rom) for name, (tr, e_rom) in plots.items()})
             rows.append(row)
     # peak resident memory of each rank (ru_maxrss is in KiB on Linux)
     peak_rss = comm.gather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
@@ -232,6 +200,54 @@ def main(argv=None):
     harness.summary([dict(row, **row["output_errors"]) for row in rows],
                     ["method", "r"] + inputs + ["stable"], widths=[10, 3] + [9] * len(inputs) + [6])
     return metrics
+
+
+def _training_basis(spod, r_values, V, state_map, comm):
+    """The POD of the training run's on-disk snapshots (r capped by their numerical rank):
+    r values kept, the gathered basis (n x r_max, not n x K) on every rank, Qh, the Gram
+    eigenvalues, the disk bytes used and the seconds taken. Closes ``spod``."""
+    t0 = time.perf_counter()
+    rank = spod.numerical_rank()
+    if rank < max(r_values) and harness.is_root(comm):
+        print(f"the training snapshots have numerical rank {rank}: r <= {rank} only")
+    r_values = [r for r in r_values if r <= rank]
+    basis_local, Qh_full, pod_lam = spod.compute(max(r_values))
+    snapshot_disk = comm.allreduce(spod.disk_bytes)
+    spod.close()
+    V_all = comm.bcast(gather_states(V, basis_local, state_map))
+    return r_values, V_all, Qh_full, pod_lam, snapshot_disk, time.perf_counter() - t0
+
+
+def _score(method, rom, r, Mg, Kg, fom, inputs, train_input, t_train, t_end):
+    """Run ``rom`` from rest under every input and score its output against the FOM's:
+    output error per input, train error (the training input), test error (the worst unseen
+    input, or the training input after its window when there is no other), the energy error
+    per input, times, stable. Returns the row and {input: (trajectory, ROM energy)}."""
+    dt = scene.DT
+    row = {"method": method, "r": r, "infer_seconds": 0.0, "output_errors": {},
+           "rom_seconds_by_input": {}}
+    outputs, plots = [], {}
+    for name in inputs:
+        n = int(round(t_end / dt))
+        tr = rom.simulate(np.zeros(r), np.zeros(r), dt, n,
+                          inputs=lambda t, name=name: np.array([scene.INPUTS[name](t)]))
+        row["output_errors"][name] = lo.relative_error(fom[name]["Y"], tr.Y[0])
+        row["rom_seconds_by_input"][name] = tr.seconds
+        outputs.append(tr.Y[0])
+        e_rom = 0.5 * np.einsum("ik,ij,jk->k", tr.Vh, Mg, tr.Vh) + 0.5 * np.einsum("ik,ij,jk->k", tr.Qh, Kg, tr.Qh)
+        row.setdefault("energy_errors", {})[name] = float(
+            np.abs(e_rom - fom[name]["E"]).max() / np.abs(fom[name]["E"]).max())
+        plots[name] = (tr, e_rom)
+    row["train_error"] = row["output_errors"][train_input]
+    unseen = [v for k, v in row["output_errors"].items() if k != train_input]
+    if unseen:
+        row["test_error"] = max(unseen)
+    else:  # one input only: the training input after its training window
+        k = int(round(t_train / dt))
+        row["test_error"] = lo.relative_error(fom[train_input]["Y"][k:], plots[train_input][0].Y[0][k:])
+    row["rom_seconds"] = max(row["rom_seconds_by_input"].values())  # the slowest input
+    row["stable"] = harness.stable(np.concatenate(outputs))
+    return row, plots
 
 
 def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps, r, dt):
