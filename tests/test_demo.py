@@ -123,3 +123,21 @@ def test_beam_unseen_ic_demo_quick(quick_demo):
     for x in m["roms"]:
         assert x["stable"] and x["test_error"] >= 0.5 * x["projection_error_test"]
     assert (tmp_path / "error_vs_r.png").stat().st_size > 10_000
+
+
+def test_report_reads_the_shared_vocabulary(quick_demo, tmp_path):
+    """report.py reads every demo's metrics.json with one vocabulary: test_error of the
+    scene's error kind, times as numbers (state errors: beam; output errors: the cantilever)."""
+    import shutil
+
+    from dolfinx_lopinf import report
+
+    for name in ("beam", "existing_code"):
+        out, m = quick_demo(name)
+        assert m["error"] in ("state", "output") and "stable_definition" in m
+        (tmp_path / name).mkdir()
+        shutil.copy(out / "metrics.json", tmp_path / name / "metrics.json")
+    table = report.main([str(tmp_path)])
+    assert any(line.startswith("| existing_code_cantilever | lopinf |") for line in table)
+    assert any(line.startswith("| beam | lopinf (mass-orthonormal) |") for line in table)
+    assert (tmp_path / "report_beam.png").stat().st_size > 10_000
