@@ -85,20 +85,7 @@ def main(argv=None):
     for r in tqdm(cfg["r_values"], desc="ROMs", unit="r"):
         basis = full_basis.truncate(r)
         V = basis.V
-        Qh, _, ddQh = lo.derivatives(V.T @ train.Q, train.times)
-        Fh = (V.T @ F_train)[:, 4:-4]
-        t0 = time.perf_counter()
-        K_l = lo.infer_wave(Qh, ddQh, Fh).K
-        t_l = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        K_n = lo.infer_wave(Qh, ddQh, Fh, negative_semidefinite=True).K
-        t_n = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        K_o = np.linalg.lstsq(Qh.T, (ddQh + Fh).T, rcond=None)[0].T  # standard OpInf
-        t_o = time.perf_counter() - t0
-        K_i = V.T @ K_fom @ V
-        for method, K, t_fit in (("lopinf", K_l, t_l), ("lopinf_nsd", K_n, t_n), ("opinf", K_o, t_o),
-                                 ("intrusive", K_i, 0.0)):
+        for method, (K, t_fit) in _fit_operators(V, train, F_train, K_fom).items():
             rom = lo.WaveROM(K=K, V=V, g=nl.g, dg=nl.dg, U=nl.U, meta={"method": method})
             row = {"method": method, "r": r, "infer_seconds": t_fit + pod_s,
                    "projection_error_train": basis.projection_error(train.Q),
@@ -116,26 +103,7 @@ def main(argv=None):
             rows.append(row)
 
     # --- long runs: FOM energy of the reconstructed state to t_long -------------------------
-    n_long = int(round(cfg["t_long"] / dt))
-    energy_curves = {}
-    for r in cfg["r_long"]:
-        for method in ("lopinf", "lopinf_nsd", "opinf", "intrusive"):
-            if (method, r) not in keep:
-                continue
-            rom = keep[(method, r)][0]
-            V = rom.V
-            try:
-                tr = rom.simulate(V.T @ snaps.Q[:, 0], V.T @ v0s, dt, n_long, every=4 * every)
-                E = fom_energy(tr.Qh, tr.Vh, V, K_fom, nl, h)
-                err = np.abs(E - E[0]) / abs(E[0])
-            except RuntimeError as exc:
-                err, tr = np.array([np.inf]), None
-                print(f"{method} r={r}: {exc}")
-            energy_curves[(method, r)] = (tr.times if tr is not None else np.zeros(1), err)
-            for row in rows:
-                if row["method"] == method and row["r"] == r:
-                    row["max_energy_error"] = float(np.max(err))
-                    row["stable"] = row["stable"] and harness.stable(np.zeros(0), err)
+    energy_curves = _long_runs(rows, keep, snaps.Q[:, 0], v0s, K_fom, nl, h, cfg)
     for row in rows:
         row.setdefault("max_energy_error", None)
 
@@ -171,6 +139,50 @@ def main(argv=None):
                            ("max_energy_error", "energy"), ("rom_seconds", "rom s"),
                            ("stable", "stable")], widths=[11, 3, 9, 9, 9, 9, 9, 6])
     return metrics
+
+
+def _fit_operators(V, train, F_train, K_fom):
+    """Kh of each method in basis V from the training states and forces (8th-order
+    differences): L-OpInf (Kh symmetric), L-OpInf with Kh <= 0, standard OpInf (least
+    squares), intrusive (V^T K V). Returns {method: (Kh, fit seconds)}."""
+    Qh, _, ddQh = lo.derivatives(V.T @ train.Q, train.times)
+    Fh = (V.T @ F_train)[:, 4:-4]
+    fits = {}
+    for method, fit in (("lopinf", lambda: lo.infer_wave(Qh, ddQh, Fh).K),
+                        ("lopinf_nsd", lambda: lo.infer_wave(Qh, ddQh, Fh, negative_semidefinite=True).K),
+                        ("opinf", lambda: np.linalg.lstsq(Qh.T, (ddQh + Fh).T, rcond=None)[0].T)):
+        t0 = time.perf_counter()
+        K = fit()
+        fits[method] = (K, time.perf_counter() - t0)
+    fits["intrusive"] = (V.T @ K_fom @ V, 0.0)
+    return fits
+
+
+def _long_runs(rows, keep, q0, v0s, K_fom, nl, h, cfg):
+    """Each kept ROM at r in r_long run to t_long: its rows get max_energy_error (the FOM
+    energy of the reconstructed state) and stable updated. Returns the energy curves."""
+    dt, every = scene.DT, cfg["every"]
+    n_long = int(round(cfg["t_long"] / dt))
+    energy_curves = {}
+    for r in cfg["r_long"]:
+        for method in ("lopinf", "lopinf_nsd", "opinf", "intrusive"):
+            if (method, r) not in keep:
+                continue
+            rom = keep[(method, r)][0]
+            V = rom.V
+            try:
+                tr = rom.simulate(V.T @ q0, V.T @ v0s, dt, n_long, every=4 * every)
+                E = fom_energy(tr.Qh, tr.Vh, V, K_fom, nl, h)
+                err = np.abs(E - E[0]) / abs(E[0])
+            except RuntimeError as exc:
+                err, tr = np.array([np.inf]), None
+                print(f"{method} r={r}: {exc}")
+            energy_curves[(method, r)] = (tr.times if tr is not None else np.zeros(1), err)
+            for row in rows:
+                if row["method"] == method and row["r"] == r:
+                    row["max_energy_error"] = float(np.max(err))
+                    row["stable"] = row["stable"] and harness.stable(np.zeros(0), err)
+    return energy_curves
 
 
 def hyper_reduce(rom, train, dt, cfg, tol=1e-5):
