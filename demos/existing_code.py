@@ -181,31 +181,10 @@ def main(argv=None):
             if method == "lopinf" and r == r_values[-1]:
                 model.save(out / "cantilever_rom.npz")
     # 4. the peer: opinf's first-order model from the same arrays (one POD for every r)
-    peer_rows, peer_seconds = [], 0.0
+    peer_rows, peer_seconds = _peer_rows(train, test, r_values, E_state, fom_test_s, preds) \
+        if with_peer else ([], 0.0)
     if not with_peer:
         print(f"opinf not installed: {peers.INSTALL_HINT} (the opinf_peer rows are skipped)")
-    else:
-        t0 = time.perf_counter()
-        fitted = peers.opinf_first_order(train.Q, train.times, r_values, velocities=train.V,
-                                         inputs=train.U, output_matrix=E_state,
-                                         svdsolver="randomized")
-        for peer in fitted:
-            rest = np.zeros(train.n_states)  # the loop starts at rest, as the ROMs do
-            pred = peer.predict(rest, rest, test.times, test_load, full=False)
-            refit = peer.predict(rest, rest, train.times, train_load, full=False)
-            peer_rows.append(harness.rom_row(
-                "opinf_peer", peer.r, scheme="exact",
-                train_error=lo.relative_error(train.Y, refit.Y),
-                test_error=lo.relative_error(test.Y, pred.Y),
-                infer_seconds=peer.fit_seconds, solve_seconds=peer.fit_seconds,
-                solver="opinf L2Solver, fit_regselect_continuous", rom_seconds=pred.seconds,
-                speedup=fom_test_s / pred.seconds,
-                projection_error_test=peer.projection_error(test.Q, times=test.times),
-                stable=pred.finite, regularizer=peer.regularizer,
-                reduced_states=2 * peer.r, velocity_source=peer.velocity_source,
-                peer_basis=peer.basis_kind))
-            preds[("opinf_peer", peer.r)] = pred
-        peer_seconds = time.perf_counter() - t0
     r_top = r_values[-1]
     best = next(x for x in rows if x["method"] == "lopinf" and x["r"] == r_top)
     metrics = harness.metrics(
@@ -242,6 +221,34 @@ def main(argv=None):
     if with_peer:
         print(f"opinf peer rows: {peer_seconds:.1f} s in all")
     return metrics
+
+
+def _peer_rows(train, test, r_values, E_state, fom_test_s, preds):
+    """opinf's first-order model (one POD for every r) scored like the L-OpInf rows; adds its
+    predictions to ``preds``. Returns (rows, seconds)."""
+    peer_rows = []
+    t0 = time.perf_counter()
+    fitted = peers.opinf_first_order(train.Q, train.times, r_values, velocities=train.V,
+                                     inputs=train.U, output_matrix=E_state,
+                                     svdsolver="randomized")
+    for peer in fitted:
+        rest = np.zeros(train.n_states)  # the loop starts at rest, as the ROMs do
+        pred = peer.predict(rest, rest, test.times, test_load, full=False)
+        refit = peer.predict(rest, rest, train.times, train_load, full=False)
+        peer_rows.append(harness.rom_row(
+            "opinf_peer", peer.r, scheme="exact",
+            train_error=lo.relative_error(train.Y, refit.Y),
+            test_error=lo.relative_error(test.Y, pred.Y),
+            infer_seconds=peer.fit_seconds, solve_seconds=peer.fit_seconds,
+            solver="opinf L2Solver, fit_regselect_continuous", rom_seconds=pred.seconds,
+            speedup=fom_test_s / pred.seconds,
+            projection_error_test=peer.projection_error(test.Q, times=test.times),
+            stable=pred.finite, regularizer=peer.regularizer,
+            reduced_states=2 * peer.r, velocity_source=peer.velocity_source,
+            peer_basis=peer.basis_kind))
+        preds[("opinf_peer", peer.r)] = pred
+    peer_seconds = time.perf_counter() - t0
+    return peer_rows, peer_seconds
 
 
 if __name__ == "__main__":
