@@ -10,7 +10,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench test test-fast test-rounding venv clean
+.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench lint test test-fast test-rounding venv clean
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -42,7 +42,11 @@ fishtail-large: venv
 bench: venv
 	$(PY) -m dolfinx_lopinf.benchmark --out $(OUT)/benchmark_inference.json
 
-test: venv
+# the tests start with the linter (ruff, configured in pyproject.toml): CI runs `make test`
+lint: venv
+	$(PY) -m ruff check dolfinx_lopinf tests demos meshes
+
+test: lint
 	$(PY) -m pytest -q
 
 test-fast: venv

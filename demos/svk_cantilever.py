@@ -134,7 +134,6 @@ def main(argv=None):
         M = dense_state_matrix(cant.system.mass_form, cant.V, cant.state_map)
         E_state = output_matrix_in_state(cant.V, cant.output_matrix, cant.state_map)
         b_state = cant.load_vector()
-        t_train_grid = runs[cfg["train_amps"][0]][0].times
         Q_train = np.hstack([runs[a][0].Q for a in cfg["train_amps"]])
         basis_full = lo.pod(Q_train, max(cfg["r_values"]), weight=M)
         alpha, beta = scene.RAYLEIGH
@@ -211,7 +210,7 @@ def main(argv=None):
             Qh_l = basis.project(snaps_long.Q[:, -3:])
             q0 = Qh_l[:, 1]
             v0 = (Qh_l[:, 2] - Qh_l[:, 0]) / (2 * dt)
-            E_fom = lambda Q, P: 0.5 * np.sum(P * P, axis=0) + ipot.value(Q)  # noqa: E731
+            E_fom = lambda Q, P, ipot=ipot: 0.5 * np.sum(P * P, axis=0) + ipot.value(Q)  # noqa: E731
             for method, (model, _, _) in models.items():
                 for scheme in (("midpoint", "avf") if method == "poly_lopinf" else ("midpoint",)):
                     tr = pl.PolynomialROM(model).simulate(q0, v0, dt, n_long, scheme=scheme)

@@ -36,7 +36,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ._dolfinx import MPI, PETSc, dolfinx, ufl
-from .errors import InputCorrectedWarning, InputError
+from .errors import InputCorrectedWarning, InputError, StepFailedError
 from .lagrangian import LagrangianSystem, _on_space
 
 fem = dolfinx.fem
@@ -190,8 +190,10 @@ def _check_homogeneous(bcs, V):
     probe.destroy()
 
 
-class StepFailed(RuntimeError):
-    """A nonlinear step did not converge; names the step, time and residual."""
+#: A nonlinear FOM step (PETSc SNES) did not converge; the message names the step, time and
+#: residual. The same class as the reduced models' Newton failures
+#: (:class:`dolfinx_lopinf.errors.StepFailedError`, a RuntimeError).
+StepFailed = StepFailedError
 
 
 class MidpointIntegrator(_Closing):

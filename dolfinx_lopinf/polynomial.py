@@ -512,7 +512,6 @@ def _solve_cvxpy(R, z, norms, r, m, damping, constraint, eps, eps_gram, sig, p_p
     except ImportError as exc:  # pragma: no cover
         raise ImportError("constrained polynomial fits need cvxpy and clarabel: "
                           "pip install cvxpy clarabel") from exc
-    p = R.shape[1]
     nK, n3, n4 = comb(r + 1, 2), comb(r + 2, 3), comb(r + 3, 4)
     nC = nK if damping else 0
     # Every unknown enters in column-normalised units x = norms * theta (O(1) for Clarabel);
