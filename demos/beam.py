@@ -178,7 +178,9 @@ def _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt):
             max_energy_error=float(np.nanmax(energy_err[window])),
             max_energy_error_t_long=float(np.nanmax(energy_err)),
             infer_seconds=float(rom.meta.get("infer_seconds", 0.0)),
-            rom_seconds=short.seconds, rom_seconds_long=long.seconds)
+            rom_seconds=short.seconds, rom_backend=short.backend,
+            rom_seconds_numpy=rom.simulate(qh0, vh0, dt, n_steps, backend="numpy").seconds,
+            rom_seconds_long=long.seconds)
         if method in fits:
             cert = fits[method].certificate
             row.update(solver=cert["solver"], min_eig_K=cert["min_eig_K"],

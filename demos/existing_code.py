@@ -164,6 +164,7 @@ def main(argv=None):
                 model = lo.fit(train, r, scheme=scheme)
             infer_s = time.perf_counter() - t0
             pred = model.predict(n_test, inputs=test_load)    # 3. the unseen load history
+            numpy_s = model.predict(n_test, inputs=test_load, backend="numpy").seconds
             refit = model.predict(n_train, inputs=train_load)
             cert = model.report["certificate"]
             rows.append(harness.rom_row(
@@ -172,7 +173,8 @@ def main(argv=None):
                 train_error=lo.relative_error(train.Y, refit.Y),
                 test_error=lo.relative_error(test.Y, pred.Y),
                 infer_seconds=infer_s, solve_seconds=cert["seconds"],
-                solver=cert["solver"], rom_seconds=pred.seconds,
+                solver=cert["solver"], rom_seconds=pred.seconds, rom_backend=pred.backend,
+                rom_seconds_numpy=numpy_s,
                 speedup=fom_test_s / pred.seconds, min_eig_K=cert["min_eig_K"],
                 min_eig_C=cert["min_eig_C"],
                 projection_error_test=model.basis.projection_error(test.Q),

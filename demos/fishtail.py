@@ -233,6 +233,10 @@ def _score(method, rom, r, Mg, Kg, fom, inputs, train_input, t_train, t_end):
                           inputs=lambda t, name=name: np.array([scene.INPUTS[name](t)]))
         row["output_errors"][name] = lo.relative_error(fom[name]["Y"], tr.Y[0])
         row["rom_seconds_by_input"][name] = tr.seconds
+        row["rom_backend"] = tr.backend
+        row.setdefault("rom_seconds_numpy_by_input", {})[name] = rom.simulate(
+            np.zeros(r), np.zeros(r), dt, n, backend="numpy",
+            inputs=lambda t, name=name: np.array([scene.INPUTS[name](t)])).seconds
         outputs.append(tr.Y[0])
         e_rom = 0.5 * np.einsum("ik,ij,jk->k", tr.Vh, Mg, tr.Vh) + 0.5 * np.einsum("ik,ij,jk->k", tr.Qh, Kg, tr.Qh)
         row.setdefault("energy_errors", {})[name] = float(
@@ -246,6 +250,7 @@ def _score(method, rom, r, Mg, Kg, fom, inputs, train_input, t_train, t_end):
         k = int(round(t_train / dt))
         row["test_error"] = lo.relative_error(fom[train_input]["Y"][k:], plots[train_input][0].Y[0][k:])
     row["rom_seconds"] = max(row["rom_seconds_by_input"].values())  # the slowest input
+    row["rom_seconds_numpy"] = max(row["rom_seconds_numpy_by_input"].values())
     row["stable"] = harness.stable(np.concatenate(outputs))
     return row, plots
 

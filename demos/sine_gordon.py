@@ -95,7 +95,10 @@ def main(argv=None):
                 Q_rom = V @ tr.Qh
                 row.update(train_error=lo.relative_error(Q_sub[:, :k_train + 1], Q_rom[:, :k_train + 1]),
                            test_error=lo.relative_error(Q_sub[:, k_train:], Q_rom[:, k_train:]),
-                           rom_seconds=tr.seconds, stable=harness.stable(tr.Qh))
+                           rom_seconds=tr.seconds, rom_backend=tr.backend,
+                           rom_seconds_numpy=rom.simulate(V.T @ snaps.Q[:, 0], V.T @ v0s, dt, n_steps,
+                                                          every=every, backend="numpy").seconds,
+                           stable=harness.stable(tr.Qh))
                 keep[(method, r)] = (rom, tr)
             except (RuntimeError, FloatingPointError, np.linalg.LinAlgError) as exc:
                 row.update(train_error=float("inf"), test_error=float("inf"), rom_seconds=None,
@@ -117,7 +120,10 @@ def main(argv=None):
         "lopinf_ecsw", r_h, points=int(hr.V.shape[0]),
         train_error=lo.relative_error(Q_sub[:, :k_train + 1], Q_h[:, :k_train + 1]),
         test_error=lo.relative_error(Q_sub[:, k_train:], Q_h[:, k_train:]),
-        rom_seconds=tr_h.seconds, rom_seconds_full_nonlinearity=tr_full.seconds,
+        rom_seconds=tr_h.seconds, rom_backend=tr_h.backend,
+        rom_seconds_numpy=hr.simulate(rom_full.V.T @ snaps.Q[:, 0], rom_full.V.T @ v0s, dt, n_steps,
+                                      every=every, backend="numpy").seconds,
+        rom_seconds_full_nonlinearity=tr_full.seconds,
         infer_seconds=hr.meta["ecsw_seconds"], stable=harness.stable(tr_h.Qh),
         projection_error_test=rows[-1]["projection_error_test"], max_energy_error=None)
     rows.append(hyper_row)
@@ -275,6 +281,12 @@ def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
         sel = [r for r in rows if r["method"] == method and r["test_error"] < 10]
         pts[names[method]] = ([r["rom_seconds"] for r in sel], [r["test_error"] for r in sel])
     pts["L-OpInf + ECSW"] = ([r["rom_seconds"] for r in fast], [r["test_error"] for r in fast])
+    # the same ROMs with the numpy reference loop (the points above use the compiled one when
+    # numba is installed: rom_backend in metrics.json)
+    for label, sel in (("L-OpInf, numpy loop", [r for r in rows if r["method"] == "lopinf"
+                                                  and r["test_error"] < 10]),
+                       ("L-OpInf + ECSW, numpy loop", fast)):
+        pts[label] = ([r["rom_seconds_numpy"] for r in sel], [r["test_error"] for r in sel])
     render.speed_vs_error(out / "speed_vs_error.png", pts, fom_seconds=fom_seconds,
                           title="sine-Gordon: ROM time to t_end vs test error (blow-ups omitted)")
 

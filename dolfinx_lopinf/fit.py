@@ -106,7 +106,8 @@ class ReducedModel:
                          f"got shape {x.shape}")
 
     def predict(self, n_steps: int | None = None, *, t_end: float | None = None, q0=None, v0=None,
-                inputs=None, dt: float | None = None, every: int = 1) -> Trajectory:
+                inputs=None, dt: float | None = None, every: int = 1,
+                backend: str = "auto") -> Trajectory:
         """Integrate the ROM with its scheme from (q0, v0) (full or reduced; rest by default).
 
         Args:
@@ -114,6 +115,8 @@ class ReducedModel:
             inputs: for a forced model, u(t) -> (m,) or an (m, n_steps + 1) array (Newmark:
                 at t_0 .. t_n; midpoint: (m, n_steps) at the step midpoints).
             dt: time step (default: the snapshots' dt); every: keep every ``every``-th step.
+            backend: the time loop, as in :meth:`~dolfinx_lopinf.rom.LagrangianROM.simulate`
+                (``"auto"``: compiled when numba is installed, else numpy).
         """
         dt = self.dt if dt is None else dt
         if (n_steps is None) == (t_end is None):
@@ -121,7 +124,7 @@ class ReducedModel:
         if n_steps is None:
             n_steps = int(round(t_end / dt))
         return self.rom.simulate(self._reduced(q0, "q0"), self._reduced(v0, "v0"), dt, n_steps,
-                                 inputs=inputs, every=every)
+                                 inputs=inputs, every=every, backend=backend)
 
     def reconstruct(self, Qh: np.ndarray, rows=None) -> np.ndarray:
         """Full states V Qh, or only the given ``rows`` (partial reconstruction)."""

@@ -171,7 +171,7 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
     """Scatter of (seconds, error) per label, with the FOM time as a vertical line."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    markers = ["o", "D", "x", "^", "*", "s"]
+    markers = ["o", "D", "x", "^", "*", "s", "v", "P"]
     for i, (label, (secs, errs)) in enumerate(points.items()):
         ax.loglog(secs, errs, markers[i % len(markers)], label=label, markersize=8 if i else 10,
                   markerfacecolor="none" if i < 2 else None, color=f"C{i}")
