@@ -40,7 +40,7 @@ fishtail-large: venv
 	$(VENV)/bin/mpiexec -n 2 $(PY) demos/fishtail.py --size large --inputs sine --out $(OUT)/fishtail_large
 
 bench: venv
-	$(PY) -m dolfinx_lopinf.benchmark --out $(OUT)/benchmark_inference.json
+	$(PY) -m dolfinx_lopinf.studies.benchmark --out $(OUT)/benchmark_inference.json
 
 # the tests start with the linter (ruff, configured in pyproject.toml): CI runs `make test`
 lint: venv

@@ -16,7 +16,7 @@
    training and test windows, FOM energy error to t = 2 s, midpoint deflection to t = 3 s.
 5. The peer, when ``opinf`` is installed (``pip install 'dolfinx_lopinf[peers]'``): opinf's
    first-order model dx/dt = A x on x = [q; q_t] (2r states), fitted the way its tutorials
-   fit it (``dolfinx_lopinf.peers``): its own POD of the scaled [q; q_t] (its randomized
+   fit it (``dolfinx_lopinf.studies.peers``): its own POD of the scaled [q; q_t] (its randomized
    SVD, seeded) in the Euclidean rows, the row's mass-orthonormal basis for q and q_t in the
    others; its 6th-order differences; its regulariser search. Integrated exactly (matrix
    exponential) and scored with the same metrics: rows ``opinf_peer`` under ``peer_roms`` in
@@ -33,10 +33,11 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import peers, render
-from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.fom import output_matrix_in_state
-from dolfinx_lopinf.intrusive import dense_state_matrix
+from dolfinx_lopinf.studies import peers
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem._dolfinx import MPI
+from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import beam as scene
 from dolfinx_lopinf.studies import harness
 
@@ -118,7 +119,7 @@ def main(argv=None):
         fom_seconds_to_t_end=info["seconds_to_state_until"],
         fom_energy_drift=info["energy_drift"],
         energy_error_definition="max over t <= t_energy of |E(V qh, V vh) - E(V qh0, V vh0)| / E(V qh0, V vh0), FOM energy",
-        # opinf's first-order model (dolfinx_lopinf.peers), scored as the rows above; empty
+        # opinf's first-order model (dolfinx_lopinf.studies.peers), scored as the rows above; empty
         # without opinf. peer_seconds: everything the peer rows cost (fits, POD, runs, scores)
         peer_roms=peer_rows,
         peer={"package": "opinf", "installed": with_peer, "seconds": peer_seconds,
@@ -146,7 +147,7 @@ def _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt):
     with the midpoint VI and score them (METHOD.md section 5)."""
     Qh_all = basis.project(train.Q)
     Qh, _, ddQh = lo.derivatives(Qh_all, train.times)
-    Qbar, D2 = lo.ddt.variational_data(Qh_all, train.times)  # midpoint-DEL-consistent data
+    Qbar, D2 = lo.core.ddt.variational_data(Qh_all, train.times)  # midpoint-DEL-consistent data
     fits, roms = {}, {"intrusive": galerkin}
     for method, infer, data in (("lopinf", lo.infer_mechanical, (Qh, ddQh)),
                                 ("lopinf_del", lo.infer_mechanical, (Qbar, D2)),

@@ -28,8 +28,8 @@ import warnings
 import numpy as np
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import render
-from dolfinx_lopinf._dolfinx import MPI
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem._dolfinx import MPI
 from dolfinx_lopinf.scenes import beam as scene
 from dolfinx_lopinf.studies import harness
 

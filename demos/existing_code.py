@@ -17,7 +17,7 @@ it has never seen. Beside it, the same fit from 8th-order finite differences
 (``scheme="continuous"``, the path the README showed before) for comparison, and - when
 ``opinf`` is installed (``pip install 'dolfinx_lopinf[peers]'``) - the established peer:
 opinf's first-order model dx/dt = A x + B p(t) on x = [q; q_t] (2r states, q_t from opinf's
-own differences), fitted the way its tutorials fit it (``dolfinx_lopinf.peers``), scored on
+own differences), fitted the way its tutorials fit it (``dolfinx_lopinf.studies.peers``), scored on
 the same tip error (rows ``opinf_peer`` under ``peer_roms`` in metrics.json).
 """
 
@@ -29,8 +29,9 @@ import warnings
 import numpy as np
 
 import dolfinx_lopinf as lo  # imports dolfinx_solver first when the PyPI wheel is used
-from dolfinx_lopinf import peers, render
-from dolfinx_lopinf.fom import output_matrix_in_state
+from dolfinx_lopinf.studies import peers
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem.fom import output_matrix_in_state
 from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402  (after dolfinx_lopinf, for the PyPI wheel)
@@ -194,7 +195,7 @@ def main(argv=None):
         n_dofs=int(train.n_states), dt=DT,
         t_train=t_train, t_end=t_test, fom_seconds=fom_test_s,
         fom_train_seconds=fom_train_s, saved_rom_r=r_top,
-        # opinf's first-order model (dolfinx_lopinf.peers), scored as the rows above; empty
+        # opinf's first-order model (dolfinx_lopinf.studies.peers), scored as the rows above; empty
         # without opinf. peer: what it is and everything it cost (POD, fits, runs, scores)
         peer_roms=peer_rows,
         peer={"package": "opinf", "installed": with_peer, "seconds": peer_seconds,

@@ -24,11 +24,11 @@ import time
 import numpy as np
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import render
-from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.fom import FieldSnapshots, StateMap, gather_states, output_matrix_in_state
-from dolfinx_lopinf.streaming import StreamingPOD
-from dolfinx_lopinf.intrusive import reduced_matrix
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem._dolfinx import MPI
+from dolfinx_lopinf.fem.fom import FieldSnapshots, StateMap, gather_states, output_matrix_in_state
+from dolfinx_lopinf.fem.streaming import StreamingPOD
+from dolfinx_lopinf.fem.intrusive import reduced_matrix
 from dolfinx_lopinf.scenes import fishtail as scene
 from dolfinx_lopinf.studies import harness
 
@@ -265,7 +265,7 @@ def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps,
     import pyvista
     from dolfinx import plot
 
-    from dolfinx_lopinf._dolfinx import dolfinx
+    from dolfinx_lopinf.fem._dolfinx import dolfinx
 
     msh = V.mesh
     fdim = msh.topology.dim - 1
@@ -304,7 +304,7 @@ def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps,
 
 def _reduced_input(nm, V, basis, state_map, comm):
     """V^T (b_left - b_right): the Galerkin input vector of u (pressures +u / -u)."""
-    from dolfinx_lopinf.fom import owned_global_dofs
+    from dolfinx_lopinf.fem.fom import owned_global_dofs
 
     W = state_map.to_dofs(basis)
     owned = owned_global_dofs(V)

@@ -3,7 +3,7 @@
     python demos/learned_mass.py [--quick] [--out DIR]
 
 L-OpInf with Mh = I is exact only in a mass-orthonormal basis; a black-box user has a
-Euclidean POD basis. ``mass="learned"`` fits Mh too (dolfinx_lopinf/mass.py). Rows:
+Euclidean POD basis. ``mass="learned"`` fits Mh too (dolfinx_lopinf/core/mass.py). Rows:
 
 * beam (METHOD.md scene 1, the paper's block POD of [0, 0.03] s, midpoint data relation
   ``variational_data``): relative state error on the test window [0.03, 0.18] s for
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf._dolfinx import MPI
+from dolfinx_lopinf.fem._dolfinx import MPI
 from dolfinx_lopinf.scenes import beam as scene
 from dolfinx_lopinf.studies import harness
 

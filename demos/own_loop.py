@@ -37,8 +37,8 @@ import warnings
 import numpy as np
 
 import dolfinx_lopinf as lo  # before dolfinx (the PyPI wheel loads its MPI first)
-from dolfinx_lopinf import render
-from dolfinx_lopinf.intrusive import dense_state_matrix
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402

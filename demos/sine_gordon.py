@@ -7,7 +7,7 @@
    variational integrator with PETSc SNES Newton at every step, dt = 0.005, to T = 25.
    It is checked against the exact kink-antikink solution 4 arctan(t / cosh x).
 2. The nonlinear potential U(q) = 1 - cos q is found in the form itself
-   (:mod:`dolfinx_lopinf.nonlinear`) and f_nl = U' = sin is evaluated pointwise on the
+   (:mod:`dolfinx_lopinf.fem.nonlinear`) and f_nl = U' = sin is evaluated pointwise on the
    snapshots - nothing else about the discretisation reaches the inference.
 3. POD of [Q, F_nl] on the training window [0, 5]; L-OpInf fits a symmetric Kh in
    qh_tt = Kh qh - V^T f_nl(V qh) (Lyapunov solve); beside it standard OpInf (unconstrained
@@ -25,9 +25,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import nonlinear, render
-from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.intrusive import dense_state_matrix
+from dolfinx_lopinf.fem import nonlinear
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem._dolfinx import MPI
+from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import sine_gordon as scene
 from dolfinx_lopinf.studies import harness
 
@@ -193,7 +194,7 @@ def _long_runs(rows, keep, q0, v0s, K_fom, nl, h, cfg):
 
 def hyper_reduce(rom, train, dt, cfg, tol=1e-5):
     """ECSW sampling of sum_i U(V_i qh) on training states; returns the hyper-reduced ROM."""
-    from dolfinx_lopinf import hyper
+    from dolfinx_lopinf.core import hyper
 
     t0 = time.perf_counter()
     Qh = rom.V.T @ train.Q[:, :: max(1, train.Q.shape[1] // 200)]
@@ -237,7 +238,7 @@ def step_time_vs_n(cfg, r, sizes=(2000, 20000), n_steps=2000):
 
 def v0_state(sg, v0_local):
     """The initial velocity in state order (gathered)."""
-    from dolfinx_lopinf.fom import gather_states
+    from dolfinx_lopinf.fem.fom import gather_states
 
     n_owned = sg.system.V.dofmap.index_map.size_local
     gathered = gather_states(sg.system.V, v0_local[:n_owned, None], sg.state_map)

@@ -12,7 +12,7 @@
 3. Four ROMs per r, all integrated by the midpoint VI with a reduced Newton step:
    * ``poly_lopinf``: U(q) = quadratic + cubic + quartic, C >= eps I, B - the gradient of one
      potential, fitted to the midpoint relation with U = m^T G m, G >= eps_g I (bounded below,
-     coercive), Clarabel with its duality gap (:mod:`dolfinx_lopinf.polynomial`);
+     coercive), Clarabel with its duality gap (:mod:`dolfinx_lopinf.core.polynomial`);
    * ``lopinf``: the paper's linear L-OpInf (``lo.infer_mechanical``) on the same relation;
    * ``intrusive``: the Galerkin polynomial ROM, its tensors from V^T F(V q) of the FOM at
      sampled q (exact for SVK, whose reduced force is a cubic polynomial; for neo-Hookean the
@@ -37,11 +37,11 @@ from pathlib import Path
 import numpy as np
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import polynomial as pl
-from dolfinx_lopinf import render
-from dolfinx_lopinf._dolfinx import MPI
-from dolfinx_lopinf.fom import output_matrix_in_state
-from dolfinx_lopinf.intrusive import dense_state_matrix
+from dolfinx_lopinf.core import polynomial as pl
+from dolfinx_lopinf.viz import render
+from dolfinx_lopinf.fem._dolfinx import MPI
+from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import svk_cantilever as scene
 
 FULL = dict(cells=(10, 1, 1), t_train=1.0, t_end=1.5, train_amps=[100.0, 250.0],

@@ -17,31 +17,32 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
-from . import ddt, errors
-from .basis import Basis, pod
-from .fit import ReducedModel, fit
-from .ddt import derivatives, newmark_data, variational_data
-from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
+from . import errors
+from .core import ddt
+from .core.basis import Basis, pod
+from .core.fit import ReducedModel, fit
+from .core.ddt import derivatives, newmark_data, variational_data
+from .core.inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
                         infer_wave)
-from .metrics import energy_error, relative_error
-from .rom import LagrangianROM, Trajectory, WaveROM, load_rom, save_rom
-from .selection import Choice, choose_r
-from .snapshots import Snapshots
+from .core.metrics import energy_error, relative_error
+from .core.rom import LagrangianROM, Trajectory, WaveROM, load_rom, save_rom
+from .core.selection import Choice, choose_r
+from .core.snapshots import Snapshots
 
 __version__ = "0.1.0"
 
 _LAZY = {
-    "LagrangianSystem": "lagrangian",
-    "MidpointIntegrator": "integrators",
-    "StepFailed": "integrators",
-    "run": "fom",
-    "StateMap": "fom",
-    "point_output_matrix": "fom",
-    "galerkin_rom": "intrusive",
-    "SnapshotRecorder": "recorder",
-    "write_vtx": "vtx",
-    "states_to_function": "vtx",
-    "state_rows": "vtx",
+    "LagrangianSystem": "fem.lagrangian",
+    "MidpointIntegrator": "fem.integrators",
+    "StepFailed": "fem.integrators",
+    "run": "fem.fom",
+    "StateMap": "fem.fom",
+    "point_output_matrix": "fem.fom",
+    "galerkin_rom": "fem.intrusive",
+    "SnapshotRecorder": "fem.recorder",
+    "write_vtx": "fem.vtx",
+    "states_to_function": "fem.vtx",
+    "state_rows": "fem.vtx",
 }
 
 

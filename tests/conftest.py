@@ -70,7 +70,7 @@ def _collect():
     yield
     gc.collect()
     if HAVE_DOLFINX:
-        from dolfinx_lopinf._dolfinx import MPI
+        from dolfinx_lopinf.fem._dolfinx import MPI
 
         MPI.COMM_WORLD.Barrier()
 
@@ -94,7 +94,7 @@ def quick_demo(tmp_path_factory):
     MPI check."""
     import json
 
-    pytest.importorskip("dolfinx_lopinf._dolfinx")
+    pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
     cache = {}
 
     def run(name):
@@ -111,7 +111,7 @@ def quick_demo(tmp_path_factory):
 @pytest.fixture(scope="session")
 def beam():
     """The paper's beam (200 Hermite nodes, state in R^400)."""
-    pytest.importorskip("dolfinx_lopinf._dolfinx")
+    pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
     from dolfinx_lopinf.scenes import beam as scene
 
     return scene.build(200)

@@ -5,7 +5,7 @@ import sys
 import numpy as np
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf._dolfinx import MPI
+from dolfinx_lopinf.fem._dolfinx import MPI
 from dolfinx_lopinf.scenes import beam as scene
 
 out = sys.argv[1]

@@ -6,12 +6,12 @@ import sys
 import numpy as np
 
 import dolfinx_lopinf  # noqa: F401  (first: the PyPI wheel orders MPI ahead of dolfinx)
-from dolfinx_lopinf._dolfinx import MPI, dolfinx, ufl
+from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx, ufl
 import dolfinx.fem.petsc
-from dolfinx_lopinf.basis import pod
-from dolfinx_lopinf.fom import StateMap, gather_states
-from dolfinx_lopinf.intrusive import dense_state_matrix
-from dolfinx_lopinf.streaming import StreamingPOD
+from dolfinx_lopinf.core.basis import pod
+from dolfinx_lopinf.fem.fom import StateMap, gather_states
+from dolfinx_lopinf.fem.intrusive import dense_state_matrix
+from dolfinx_lopinf.fem.streaming import StreamingPOD
 
 out = sys.argv[1]
 comm = MPI.COMM_WORLD

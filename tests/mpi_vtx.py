@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf._dolfinx import MPI, dolfinx  # the wheel's MPI before dolfinx
-from dolfinx_lopinf.fom import gather_states
-from dolfinx_lopinf.vtx import states_to_function, write_vtx
+from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx  # the wheel's MPI before dolfinx
+from dolfinx_lopinf.fem.fom import gather_states
+from dolfinx_lopinf.fem.vtx import states_to_function, write_vtx
 
 out = Path(sys.argv[1])
 comm = MPI.COMM_WORLD

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 SCRIPT = Path(__file__).with_name("ckpt_beam.py")
 
@@ -96,7 +96,7 @@ def test_stale_checkpoint_of_another_run_is_refused(tmp_path, interrupted_run):
 def test_stability_suite(tmp_path):
     """The documented stability command: L-OpInf stays symmetric and bounded on noisy and
     badly scaled data, and the two hopeless cases fail with clear messages."""
-    from dolfinx_lopinf import stability
+    from dolfinx_lopinf.studies import stability
 
     rows = {r["case"]: r for r in stability.main(["--out", str(tmp_path / "s.json")])}
     for case, row in rows.items():

@@ -8,9 +8,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from dolfinx_lopinf import compiled
+from dolfinx_lopinf.core import compiled
 from dolfinx_lopinf.errors import InputError
-from dolfinx_lopinf.rom import LagrangianROM, WaveROM
+from dolfinx_lopinf.core.rom import LagrangianROM, WaveROM
 
 RTOL = 1e-12
 needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed or JIT disabled")
@@ -160,7 +160,7 @@ def test_jit_disabled_falls_back(monkeypatch):
 def test_jit_disabled_never_imports_numba():
     code = textwrap.dedent("""
         import sys, numpy as np
-        from dolfinx_lopinf.rom import LagrangianROM, WaveROM
+        from dolfinx_lopinf.core.rom import LagrangianROM, WaveROM
         tr = LagrangianROM(K=np.eye(2)).simulate(np.ones(2), np.zeros(2), 0.1, 50)
         wv = WaveROM(K=-np.eye(2), V=np.eye(2), g=np.sin, dg=np.cos, U=np.cos).simulate(
             np.zeros(2), np.ones(2), 0.1, 50)
@@ -189,7 +189,7 @@ def test_cache_fallback_when_nothing_is_writable(tmp_path):
         import sys, numba
         sys.path.insert(0, {str(src)!r})
         import mod
-        from dolfinx_lopinf import compiled
+        from dolfinx_lopinf.core import compiled
         f = compiled.jit(mod.f, "float64(float64)")
         assert f(2.0) == 4.0
         print(numba.config.CACHE_DIR)

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -75,7 +75,7 @@ def test_existing_code_demo_quick(quick_demo):
 
 def test_recorder_rejects_bad_records():
     import dolfinx_lopinf as lo
-    from dolfinx_lopinf._dolfinx import MPI, dolfinx
+    from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx
 
     msh = dolfinx.mesh.create_unit_interval(MPI.COMM_WORLD, 8)
     V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))
@@ -130,7 +130,7 @@ def test_report_reads_the_shared_vocabulary(quick_demo, tmp_path):
     scene's error kind, times as numbers (state errors: beam; output errors: the cantilever)."""
     import shutil
 
-    from dolfinx_lopinf import report
+    from dolfinx_lopinf.studies import report
 
     for name in ("beam", "existing_code"):
         out, m = quick_demo(name)

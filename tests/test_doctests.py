@@ -5,8 +5,8 @@ import importlib
 
 import pytest
 
-CORE = ["dolfinx_lopinf.basis", "dolfinx_lopinf.ddt", "dolfinx_lopinf.fit", "dolfinx_lopinf.inference",
-        "dolfinx_lopinf.io_atomic"]
+CORE = ["dolfinx_lopinf.core.basis", "dolfinx_lopinf.core.ddt", "dolfinx_lopinf.core.fit", "dolfinx_lopinf.core.inference",
+        "dolfinx_lopinf.core.io_atomic"]
 
 
 @pytest.mark.parametrize("name", CORE)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import lsq
+from dolfinx_lopinf.core import lsq
 
 
 def _forced_damped_data(r=5, m=2, n=6000, dt=2e-3, noise=0.0, seed=0):
@@ -63,7 +63,7 @@ def test_active_constraints_match_clarabel():
     assert ours.certificate["multiplier_min_eig"] > -1e-6
     assert ours.certificate["complementarity"] < 1e-6
     # the log-barrier method (the last resort) reaches the same point with a small gap
-    from dolfinx_lopinf.inference import gram_data
+    from dolfinx_lopinf.core.inference import gram_data
 
     g = gram_data(*data)
     free = np.zeros(g.L.shape[0], dtype=bool)
@@ -189,8 +189,8 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     ("admm") each return a feasible point whose certified duality gap is <= 1e-8, and that
     certified lower bound does not exceed Clarabel's value. (20, 1) is the case where ADMM
     needed 144 iterations to find the face."""
-    from dolfinx_lopinf.benchmark import forced_data
-    from dolfinx_lopinf.inference import _solve_cvxpy, gram_data
+    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.inference import _solve_cvxpy, gram_data
 
     Qh, dQh, ddQh, U = forced_data(r, 3000, seed=seed)
     g = gram_data(Qh, dQh, ddQh, U)
@@ -211,7 +211,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     # Clarabel's objective on the reduced problem (B minimised out exactly as in ours), at
     # its point made feasible (Clarabel meets K, C >= eps I only to its own tolerance, and
     # an infeasible point may undercut the bound by ~1e-8: a verdict rounding could flip)
-    from dolfinx_lopinf.inference import _floor
+    from dolfinx_lopinf.core.inference import _floor
 
     theta_ref = np.hstack([_floor(ref.K, 1e-8), _floor(ref.C, 1e-8)])
     f_ref_S = float(np.sum((theta_ref @ L_S + Z_S) ** 2))
@@ -222,7 +222,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
 
 def test_gram_data_is_the_compressed_problem():
     """L L^T = D D^T, Z L^T = ddQh D^T and ||ddQh||^2 - ||Z||^2 is the least-squares residual."""
-    from dolfinx_lopinf.inference import gram_data
+    from dolfinx_lopinf.core.inference import gram_data
 
     rng = np.random.default_rng(4)
     Qh, dQh, ddQh = (rng.standard_normal((3, 500)) for _ in range(3))
@@ -240,26 +240,26 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
     caller's thread count back, also when they raise."""
     from threadpoolctl import ThreadpoolController
 
-    from dolfinx_lopinf.inference import _blas_controller
+    from dolfinx_lopinf.core.inference import _blas_controller
 
     ctl = ThreadpoolController()
     data, _ = _forced_damped_data(r=3, m=1, n=800)
     with ctl.limit(limits=2, user_api="blas"):
         before = [p["num_threads"] for p in ctl.info() if p["user_api"] == "blas"]
         seen = []
-        original = lo.inference.gram_data
+        original = lo.core.inference.gram_data
 
         def spy(*a, **k):
             seen.append([p["num_threads"] for p in _blas_controller().info() if p["user_api"] == "blas"])
             return original(*a, **k)
 
-        lo.inference.gram_data = spy
+        lo.core.inference.gram_data = spy
         try:
             lo.infer_mechanical(*data)
             with pytest.raises(ValueError):
                 lo.infer_mechanical(*data[:3], np.full_like(data[3], np.nan))
         finally:
-            lo.inference.gram_data = original
+            lo.core.inference.gram_data = original
         after = [p["num_threads"] for p in ctl.info() if p["user_api"] == "blas"]
     assert seen and all(n == 1 for n in seen[0])
     assert after == before
@@ -269,8 +269,8 @@ def test_interior_point_crossover_and_fallback_are_certified():
     """Stopped early, the interior point method hands its face to Newton on the fixed-rank
     face (crossover, certified in a few steps); stopped too early for the face to be right,
     ADMM + face Newton takes over - every path ends certified."""
-    from dolfinx_lopinf.benchmark import forced_data
-    from dolfinx_lopinf.inference import gram_data
+    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.inference import gram_data
 
     Qh, dQh, ddQh, U = forced_data(12, 3000, seed=2)
     g = gram_data(Qh, dQh, ddQh, U)
@@ -295,8 +295,8 @@ def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
     minimised out exactly. Seed 2: K stays > eps I at the optimum, the reduced run is kept
     and equals the full interior point's answer; seed 0: K is active at the optimum, the
     reduced run is abandoned and the full one answers. Both certified <= 1e-8."""
-    from dolfinx_lopinf.benchmark import forced_data
-    from dolfinx_lopinf.inference import gram_data
+    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.inference import gram_data
 
     r = 12
     g = gram_data(*forced_data(r, 3000, seed=seed))

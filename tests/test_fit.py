@@ -8,7 +8,7 @@ import pytest
 import scipy.linalg
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf.fit import SchemeMismatchWarning
+from dolfinx_lopinf.core.fit import SchemeMismatchWarning
 
 
 def _system(seed=0, r=4):

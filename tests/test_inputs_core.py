@@ -72,7 +72,7 @@ def test_item4_snapshots_save_returns_the_path_it_wrote(tmp_path):
 
 
 def test_item4_atomic_writer(tmp_path, monkeypatch):
-    from dolfinx_lopinf import io_atomic
+    from dolfinx_lopinf.core import io_atomic
 
     path = io_atomic.atomic_savez(tmp_path / "a", x=np.arange(3))
     assert path == tmp_path / "a.npz"
@@ -196,7 +196,7 @@ def test_item9_complex_arrays_are_refused_everywhere():
     calls = {
         "pod": lambda: lo.pod(Q, 2),
         "derivatives": lambda: lo.derivatives(Q, t),
-        "variational_data": lambda: lo.ddt.variational_data(Q, t),
+        "variational_data": lambda: lo.core.ddt.variational_data(Q, t),
         "Snapshots": lambda: lo.Snapshots(t, Q),
         "times": lambda: lo.Snapshots(t * (1 + 0j), Q.real),
         "LagrangianROM": lambda: lo.LagrangianROM(K=np.eye(2) * (1 + 1j)),
@@ -371,7 +371,7 @@ def test_core_entry_points_validate_what_they_are_given():
     with pytest.raises(InputError, match="energy contains a non-finite initial"):
         lo.energy_error([np.nan, 1.0])
     blown_up = lo.energy_error([1.0, np.inf])  # a result, not an input error
-    assert not lo.metrics.is_stable(np.zeros((1, 2)), blown_up)
+    assert not lo.core.metrics.is_stable(np.zeros((1, 2)), blown_up)
     assert lo.relative_error(np.ones(3), np.array([1.0, np.inf, 1.0])) == np.inf
     basis = lo.pod(Q, 2)
     with pytest.raises(InputError, match="Q contains"):
@@ -396,15 +396,15 @@ def test_core_entry_points_validate_what_they_are_given():
     with pytest.raises(InputError, match="V0"):
         lo.choose_r(Q, t, [1], 0.1, V0=np.ones(5))
     with pytest.raises(InputError, match="times has 39 entries"):
-        lo.ddt.variational_data(Q, t[:-1])
+        lo.core.ddt.variational_data(Q, t[:-1])
     with pytest.raises(InputError, match="inputs contains"):
         lo.newmark_data(Q, t, np.full((1, 40), np.nan))
     with pytest.raises(InputError, match="q0 and v0"):
-        lo.rom.WaveROM(K=np.eye(2), V=np.eye(2), g=np.sin, dg=np.cos, U=np.cos).simulate(
+        lo.core.rom.WaveROM(K=np.eye(2), V=np.eye(2), g=np.sin, dg=np.cos, U=np.cos).simulate(
             np.zeros(3), np.zeros(3), 0.1, 2)
     with pytest.raises(InputError, match="K contains"):
-        lo.rom.WaveROM(K=np.full((2, 2), np.nan), V=np.eye(2), g=np.sin, dg=np.cos, U=np.cos)
-    from dolfinx_lopinf import hyper
+        lo.core.rom.WaveROM(K=np.full((2, 2), np.nan), V=np.eye(2), g=np.sin, dg=np.cos, U=np.cos)
+    from dolfinx_lopinf.core import hyper
 
     with pytest.raises(InputError, match="Qh contains"):
         hyper.ecsw(np.eye(3), np.full((3, 4), np.nan), np.sin)

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 import ufl
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf._dolfinx import MPI, PETSc, dolfinx
+from dolfinx_lopinf.fem._dolfinx import MPI, PETSc, dolfinx
 from dolfinx_lopinf.errors import (CheckpointMismatchError, FileFormatError,
                                    InputCorrectedWarning, InputError)
 from dolfinx_lopinf.scenes import beam as scene
@@ -269,7 +269,7 @@ import sys
 import numpy as np
 import ufl
 import dolfinx_lopinf as lo
-from dolfinx_lopinf._dolfinx import MPI, PETSc, dolfinx
+from dolfinx_lopinf.fem._dolfinx import MPI, PETSc, dolfinx
 from dolfinx_lopinf.errors import CheckpointMismatchError, InputError
 from dolfinx_lopinf.scenes import beam as scene
 
@@ -349,7 +349,7 @@ def test_bc_check_and_checkpoint_fingerprint_agree_on_two_ranks(tmp_path):
 # -- the rest of the DOLFINx layer -----------------------------------------------------------
 
 def test_streaming_pod_refuses_a_function_of_another_mesh(tmp_path):
-    from dolfinx_lopinf.streaming import StreamingPOD
+    from dolfinx_lopinf.fem.streaming import StreamingPOD
 
     V = _p1()
     with StreamingPOD(V, capacity=3, directory=tmp_path) as spod:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import ddt
+from dolfinx_lopinf.core import ddt
 
 
 @pytest.mark.parametrize("which", ["first", "second"])
@@ -141,9 +141,9 @@ def test_metrics():
     assert lo.relative_error(np.ones(4), np.zeros(4)) == pytest.approx(1.0)
     with pytest.raises(ValueError, match="shapes differ"):
         lo.relative_error(np.ones(4), np.ones(3))
-    assert not lo.metrics.is_stable(np.array([[np.nan]]), np.array([0.0]))
-    assert not lo.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 1.5]))
-    assert lo.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 0.5]))
+    assert not lo.core.metrics.is_stable(np.array([[np.nan]]), np.array([0.0]))
+    assert not lo.core.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 1.5]))
+    assert lo.core.metrics.is_stable(np.zeros((1, 2)), np.array([0.0, 0.5]))
 
 
 def test_choose_r_picks_the_smallest_sufficient_dimension():
@@ -173,7 +173,7 @@ def test_variational_data_recover_the_midpoint_operator_exactly():
     rom = lo.LagrangianROM(K=K)
     dt = 0.01
     tr = rom.simulate(np.array([1.0, 0.5, 0.2]), np.array([0.0, 1.0, -2.0]), dt, 3000)
-    Qbar, D2 = lo.ddt.variational_data(tr.Qh, tr.times)
+    Qbar, D2 = lo.core.ddt.variational_data(tr.Qh, tr.times)
     exact = lo.infer_mechanical(Qbar, None, D2, damping=False).K
     Qh, _, ddQh = lo.derivatives(tr.Qh, tr.times)
     fd = lo.infer_mechanical(Qh, None, ddQh, damping=False).K

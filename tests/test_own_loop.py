@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "demos" / "own_loop.py"

@@ -1,4 +1,4 @@
-"""The opinf peer baseline (dolfinx_lopinf.peers): on a known linear oscillator hidden in a
+"""The opinf peer baseline (dolfinx_lopinf.studies.peers): on a known linear oscillator hidden in a
 random orthonormal basis it recovers the system - the eigenvalues of its first-order operator
 and the trajectory beyond the training window - to measured tolerances, with and without
 recorded velocities and with an input; bad arguments are refused by name; without opinf the
@@ -59,7 +59,7 @@ def _eig_error(A_peer, A_true):
 @pytest.fixture(scope="module")
 def peers():
     pytest.importorskip("opinf")
-    from dolfinx_lopinf import peers as module
+    from dolfinx_lopinf.studies import peers as module
 
     return module
 
@@ -163,7 +163,7 @@ def test_bad_input(peers):
 
 
 def test_missing_opinf_says_how_to_install(monkeypatch):
-    from dolfinx_lopinf import peers as module
+    from dolfinx_lopinf.studies import peers as module
 
     monkeypatch.setitem(sys.modules, "opinf", None)  # import opinf -> ImportError
     assert not module.have_opinf()
@@ -181,7 +181,7 @@ def test_h5py_still_imports_after_the_dolfinx_layer():
 
     if importlib.util.find_spec("h5py") is None or importlib.util.find_spec("dolfinx") is None:
         pytest.skip("needs h5py and dolfinx")
-    code = ("import dolfinx_lopinf._dolfinx, dolfinx.fem.petsc, h5py, numpy as np, sys\n"
+    code = ("import dolfinx_lopinf.fem._dolfinx, dolfinx.fem.petsc, h5py, numpy as np, sys\n"
             "p = sys.argv[1]\n"
             "with h5py.File(p, 'w') as f: f['a'] = np.arange(3.0)\n"
             "with h5py.File(p, 'r') as f: assert list(f['a'][:]) == [0.0, 1.0, 2.0]\n")

@@ -1,4 +1,4 @@
-"""Polynomial L-OpInf (dolfinx_lopinf.polynomial): exact recovery of a known quartic-potential
+"""Polynomial L-OpInf (dolfinx_lopinf.core.polynomial): exact recovery of a known quartic-potential
 system, the gradient structure, the lower-boundedness certificate, energy conservation of the
 reduced integrator, named input errors; and the SVK cantilever demo in quick mode."""
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dolfinx_lopinf import polynomial as pl
+from dolfinx_lopinf.core import polynomial as pl
 from dolfinx_lopinf.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -156,7 +156,7 @@ def test_bad_inputs_are_named():
 
 @pytest.mark.slow
 def test_demo_quick(tmp_path):
-    pytest.importorskip("dolfinx_lopinf._dolfinx")
+    pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
     proc = subprocess.run([sys.executable, str(ROOT / "demos" / "svk_cantilever.py"), "--quick",
                            "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

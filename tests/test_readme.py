@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 
 def test_readme_example_runs(capsys):

@@ -7,7 +7,7 @@ import pytest
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.errors import FileFormatError, InputError
-from dolfinx_lopinf.snapshots import RECORDED_SCHEMES
+from dolfinx_lopinf.core.snapshots import RECORDED_SCHEMES
 
 T = np.arange(12) * 0.1
 Q = np.vstack([np.cos(T), np.sin(T)])
@@ -66,7 +66,7 @@ def test_bad_stored_scheme_is_a_file_format_error(tmp_path, stored, match):
 
 # ---- the recorder (a tiny dolfinx mesh) ----
 
-dolfinx = pytest.importorskip("dolfinx_lopinf._dolfinx").dolfinx
+dolfinx = pytest.importorskip("dolfinx_lopinf.fem._dolfinx").dolfinx
 
 
 def _space():

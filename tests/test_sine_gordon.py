@@ -5,13 +5,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 import ufl  # noqa: E402
 
 import dolfinx_lopinf as lo  # noqa: E402
-from dolfinx_lopinf import hyper, nonlinear  # noqa: E402
-from dolfinx_lopinf._dolfinx import MPI, dolfinx  # noqa: E402
+from dolfinx_lopinf.core import hyper  # noqa: E402
+from dolfinx_lopinf.fem import nonlinear
+from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx  # noqa: E402
 from dolfinx_lopinf.scenes import sine_gordon as scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,4 +1,4 @@
-"""The least-squares solvers as objects (dolfinx_lopinf.lsq): the shared numerics, the
+"""The least-squares solvers as objects (dolfinx_lopinf.core.lsq): the shared numerics, the
 Problem and its Certificate, and each strategy on its own - every strategy reaches the same
 certified optimum, and infer_mechanical takes a name or a strategy object (numpy only)."""
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf import lsq
+from dolfinx_lopinf.core import lsq
 from dolfinx_lopinf.errors import InputError
-from dolfinx_lopinf.lsq import linalg
+from dolfinx_lopinf.core.lsq import linalg
 
 EPS = 1e-8
 
@@ -241,7 +241,7 @@ def test_face_newton_turns_a_rough_face_into_a_certified_optimum():
 # -- infer_mechanical takes a name or an object, and rejects what it does not know --------
 
 def _forced_data(r=4):
-    from dolfinx_lopinf.benchmark import forced_data
+    from dolfinx_lopinf.studies.benchmark import forced_data
 
     return forced_data(r, 3000, seed=3)
 
@@ -291,7 +291,7 @@ def test_conservative_admm_skips_the_lyapunov_shortcut():
 
 @pytest.mark.parametrize("kind", ["rigid", "mixed", "short"])
 def test_both_active_benchmark_data_is_certified_with_both_blocks_on_the_constraint(kind):
-    from dolfinx_lopinf import benchmark
+    from dolfinx_lopinf.studies import benchmark
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

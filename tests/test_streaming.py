@@ -4,7 +4,7 @@ serial result under mpiexec -n 2."""
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 from test_mpi import _serial_and_parallel  # noqa: E402
 
@@ -37,8 +37,8 @@ def test_streaming_pod_equals_dense_and_serial(tmp_path):
 
 
 def test_streaming_pod_bad_input(tmp_path):
-    from dolfinx_lopinf._dolfinx import MPI, dolfinx
-    from dolfinx_lopinf.streaming import StreamingPOD
+    from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx
+    from dolfinx_lopinf.fem.streaming import StreamingPOD
 
     msh = dolfinx.mesh.create_unit_interval(MPI.COMM_SELF, 8)
     V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))

@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("dolfinx_lopinf._dolfinx")
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 import dolfinx
 from mpi4py import MPI
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.errors import InputError
-from dolfinx_lopinf.fom import StateMap
-from dolfinx_lopinf.vtx import state_rows, states_to_function, write_vtx
+from dolfinx_lopinf.fem.fom import StateMap
+from dolfinx_lopinf.fem.vtx import state_rows, states_to_function, write_vtx
 
 TIMES = 0.1 * np.arange(4)
 

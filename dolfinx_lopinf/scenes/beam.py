@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._dolfinx import MPI, PETSc, dolfinx, ufl
-from ..fom import StateMap, point_output_matrix
-from ..lagrangian import LagrangianSystem
+from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
+from ..fem.fom import StateMap, point_output_matrix
+from ..fem.lagrangian import LagrangianSystem
 
 LENGTH = 1.0  # m
 MU = 6.28e-3  # kg/m

@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from .._dolfinx import MPI, PETSc, dolfinx, ufl
+from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
 
 LENGTH, WIDTH, HEIGHT = 1.0, 0.1, 0.1
 E_MOD, NU, RHO = 1.0e5, 0.3, 1.0

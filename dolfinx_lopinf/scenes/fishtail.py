@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._dolfinx import MPI, PETSc, dolfinx, ufl
-from ..fom import EnergyProbe, OutputProbe, Progress, point_output_matrix, run
-from ..integrators import NewmarkIntegrator, rigid_body_modes
-from ..lagrangian import LagrangianSystem
+from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
+from ..fem.fom import EnergyProbe, OutputProbe, Progress, point_output_matrix, run
+from ..fem.integrators import NewmarkIntegrator, rigid_body_modes
+from ..fem.lagrangian import LagrangianSystem
 from . import fishtail_geometry as geometry
 
 HULL = dict(lam=2.03e5, mu=8.45e3, rho=1.07e3)
@@ -151,7 +151,7 @@ def integrator(tail: Fishtail, dt: float = DT, *, solver: str = "direct") -> New
 def simulate(tail: Fishtail, nm: NewmarkIntegrator, u, t_end: float, *, sinks=(),
              progress: bool = False):
     """Newmark from rest under the chamber input ``u(t)`` to ``t_end`` through the one time
-    loop (:func:`dolfinx_lopinf.fom.run`): the POI output and the energy at every step, and
+    loop (:func:`dolfinx_lopinf.fem.fom.run`): the POI output and the energy at every step, and
     whatever the extra ``sinks`` record (e.g. ``StreamingPOD.sink``, ``FieldSnapshots``).
 
     Returns:

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._dolfinx import MPI, dolfinx, ufl
-from ..fom import StateMap
-from ..lagrangian import LagrangianSystem
+from ..fem._dolfinx import MPI, dolfinx, ufl
+from ..fem.fom import StateMap
+from ..fem.lagrangian import LagrangianSystem
 
 X_LEFT, X_RIGHT = -20.0, 20.0
 N_POINTS = 2000

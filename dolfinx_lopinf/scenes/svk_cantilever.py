@@ -28,7 +28,7 @@ linear one), dt = 2e-3 s. Its snapshots obey the discrete forced Euler-Lagrange 
     M D2_k + C D1_k + 1/2 (F(q_{k-1/2}) + F(q_{k+1/2})) = B Ubar_k,
     q_{k+-1/2} = (q_k + q_{k+-1}) / 2,  Ubar_k = (u(t_{k-1/2}) + u(t_{k+1/2})) / 2,
 
-with F = grad U the internal force - the relation :mod:`dolfinx_lopinf.polynomial` fits.
+with F = grad U the internal force - the relation :mod:`dolfinx_lopinf.core.polynomial` fits.
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .._dolfinx import MPI, dolfinx, ufl
-from ..fom import StateMap, point_output_matrix
-from ..lagrangian import LagrangianSystem
+from ..fem._dolfinx import MPI, dolfinx, ufl
+from ..fem.fom import StateMap, point_output_matrix
+from ..fem.lagrangian import LagrangianSystem
 
 LENGTH, WIDTH, HEIGHT = 1.0, 0.1, 0.1
 E_MOD, NU, RHO = 1.0e5, 0.3, 1.0

@@ -24,7 +24,7 @@ One vocabulary for every scene:
   times under ``*_by_input``).
 
 Why here (``dolfinx_lopinf/studies``) and not in ``demos/``: the vocabulary is read back by
-:mod:`dolfinx_lopinf.report` and by the tests, and an installed package cannot import
+:mod:`dolfinx_lopinf.studies.report` and by the tests, and an installed package cannot import
 ``demos/``; ``studies`` keeps it apart from the library's numerical layers.
 """
 
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io_atomic import atomic_write_text
+from ..core.io_atomic import atomic_write_text
 
 #: the error vocabulary: what ``train_error`` / ``test_error`` of a row measure
 ERRORS = {
@@ -77,7 +77,7 @@ def parse(doc: str, argv=None, *, out: str, quick: str = "short runs", extra=Non
 def is_root(comm=None) -> bool:
     """True on the rank that writes files and prints (rank 0)."""
     if comm is None:
-        from .._dolfinx import MPI
+        from ..fem._dolfinx import MPI
 
         comm = MPI.COMM_WORLD
     return comm.rank == 0

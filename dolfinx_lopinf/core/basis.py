@@ -1,0 +1,189 @@
+"""Proper orthogonal decomposition bases, projection and (partial) reconstruction.
+
+POD: V_r = the r leading left singular vectors of the snapshot matrix Q (n, K), so
+V_r^T V_r = I and ||Q - V_r V_r^T Q||_F^2 = sum_{i>r} sigma_i^2 is minimal.
+Weighted (e.g. mass-orthonormal) POD: with an SPD weight W = R^T R (R upper Cholesky
+factor), V = R^{-1} U_r where U_r are the leading left singular vectors of R Q, so
+V^T W V = I and projection is qh = V^T W q. With W = M (the FOM mass matrix) the reduced
+mass is exactly I - what L-OpInf assumes - at the price of using M, which a strict black
+box would not give.
+Block-diagonal POD: for a state made of blocks (beam deflection w and rotation theta),
+V = diag(V_w, V_theta) with each block's own POD, so every reduced coordinate stays in one
+physical block (METHOD.md section 3).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._checks import (as_real_array, check_blocks, check_finite, check_int, check_matrix,
+                      check_square, fro_norm)
+from ..errors import InputError
+
+
+@dataclass(frozen=True)
+class Basis:
+    """An orthonormal reduced basis.
+
+    Attributes:
+        V: (n, r) basis matrix with orthonormal columns.
+        singular_values: name -> all singular values of that block's snapshots (for
+            energy/decay plots); a plain POD has the single block ``"all"``.
+        blocks: name -> (row indices of the full state, column indices of V).
+        weight: (n, n) SPD inner-product matrix W (V^T W V = I), or None for Euclidean.
+    """
+
+    V: np.ndarray
+    singular_values: dict
+    blocks: dict
+    weight: np.ndarray | None = None
+
+    @property
+    def n(self) -> int:
+        return self.V.shape[0]
+
+    @property
+    def r(self) -> int:
+        return self.V.shape[1]
+
+    def project(self, Q: np.ndarray) -> np.ndarray:
+        """Reduced coordinates Qh = V^T W Q (W = I for Euclidean POD), (r, K) from (n, K)."""
+        Q = as_real_array(Q, "Q")
+        if Q.ndim not in (1, 2) or Q.shape[0] != self.n:
+            raise InputError(f"Q must be (n,) or (n, K) with n = {self.n} (the basis' rows), got "
+                             f"shape {Q.shape}")
+        check_finite(Q, "Q")
+        return self.V.T @ (Q if self.weight is None else self.weight @ Q)
+
+    def reconstruct(self, Qh: np.ndarray, rows=None) -> np.ndarray:
+        """Full (or partial) states V[rows] Qh.
+
+        Args:
+            Qh: (r, K) or (r,) reduced coordinates.
+            rows: optional row indices (e.g. the dofs of a point, a line or a surface);
+                only those rows are formed, at cost O(len(rows) r K).
+        """
+        Qh = as_real_array(Qh, "Qh")
+        if Qh.ndim not in (1, 2) or Qh.shape[0] != self.r:
+            raise InputError(f"Qh must be (r,) or (r, K) with r = {self.r}, got shape {Qh.shape}")
+        # non-finite Qh (a ROM that blew up) reconstruct to non-finite states: a result
+        if rows is not None:
+            rows = np.asarray(rows)
+            if rows.dtype.kind not in "iu" or rows.ndim > 1:
+                raise InputError(f"rows must be integer row indices, got {rows.dtype} of shape "
+                                 f"{rows.shape}")
+            if rows.size and (rows.min() < -self.n or rows.max() >= self.n):
+                raise InputError(f"rows index outside 0..{self.n - 1}: min {rows.min()}, max "
+                                 f"{rows.max()}")
+        V = self.V if rows is None else self.V[rows]
+        return V @ Qh
+
+    def projection_error(self, Q: np.ndarray) -> float:
+        """||Q - V project(Q)||_F / ||Q||_F: the floor no ROM in this basis can go below
+        (measured in the Euclidean norm of the state, whatever the basis' weight). The norms
+        are scaled first, so data of any finite magnitude (1e-170 .. 1e160) give the same
+        ratio."""
+        Qh = self.project(Q)
+        Q = as_real_array(Q, "Q")
+        denom = fro_norm(Q)
+        if denom == 0:
+            raise InputError("Q is identically zero; its relative projection error is undefined")
+        return fro_norm(Q - self.V @ Qh) / denom
+
+    def truncate(self, r: int) -> "Basis":
+        """The same kind of basis with fewer columns (r split evenly over the blocks)."""
+        r = check_int(r, "r", 1)
+        sizes = _split(r, list(self.blocks))
+        cols, new_blocks, start = [], {}, 0
+        for (name, (rows, bcols)), size in zip(self.blocks.items(), sizes):
+            if size > len(bcols):
+                raise InputError(f"block {name!r} has only {len(bcols)} basis vectors, asked {size}")
+            cols.extend(bcols[:size])
+            new_blocks[name] = (rows, np.arange(start, start + size))
+            start += size
+        return Basis(self.V[:, cols], self.singular_values, new_blocks, self.weight)
+
+
+def _split(r: int, names: list) -> list[int]:
+    if r < len(names) or r % len(names):
+        raise InputError(
+            f"r = {r} must be a positive multiple of the number of blocks ({len(names)}: "
+            f"{', '.join(map(str, names))}) so each block gets r / {len(names)} vectors"
+        )
+    return [r // len(names)] * len(names)
+
+
+def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e-12,
+        weight: np.ndarray | None = None) -> Basis:
+    """POD basis of Q, block-diagonal when ``blocks`` is given.
+
+    Args:
+        Q: (n, K) snapshots (for the augmented sine-Gordon basis pass ``np.hstack([Q, F])``).
+        r: total reduced dimension; with blocks, each of the b blocks gets r / b vectors.
+        blocks: optional name -> row indices; rows not in any block get no basis vectors.
+        rank_rtol: singular values below ``rank_rtol * sigma_max`` count as zero; asking for
+            more vectors than the numerical rank is an error (they would be noise).
+        weight: optional SPD (n, n) inner-product matrix (dense), e.g. the mass matrix in
+            state coordinates: the basis is then W-orthonormal (not with ``blocks``).
+
+    Returns:
+        A :class:`Basis` with ``V`` (n, r).
+
+    Example:
+        >>> Q = np.random.default_rng(0).standard_normal((50, 30))
+        >>> basis = pod(Q, 4, blocks={"a": np.arange(25), "b": np.arange(25, 50)})
+        >>> basis.V.shape, bool(np.allclose(basis.V.T @ basis.V, np.eye(4)))
+        ((50, 4), True)
+    """
+    Q = check_matrix(Q, "Q")
+    if isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or r < 1:
+        raise InputError(f"r must be a positive integer, got {r!r}")
+    r = int(r)
+    if not (isinstance(rank_rtol, (int, float, np.integer, np.floating)) and 0 <= rank_rtol < 1):
+        raise InputError(f"rank_rtol must be a number in [0, 1), got {rank_rtol!r}")
+    if weight is not None:
+        if blocks:
+            raise InputError("a weighted POD mixes blocks; pass either blocks or weight")
+        return _weighted_pod(Q, r, check_square(weight, "weight"), rank_rtol)
+    blocks = check_blocks(blocks, Q.shape[0])
+    blocks = {"all": np.arange(Q.shape[0])} if not blocks else blocks
+    sizes = _split(r, list(blocks))
+    V = np.zeros((Q.shape[0], r))
+    singular_values, out_blocks, start = {}, {}, 0
+    for (name, rows), size in zip(blocks.items(), sizes):
+        rows = np.asarray(rows)
+        U, s, _ = np.linalg.svd(Q[rows], full_matrices=False)
+        rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
+        if size > rank:
+            raise InputError(
+                f"block {name!r}: asked for {size} basis vectors but the snapshots have "
+                f"numerical rank {rank} (singular values {s[: size + 1]}); lower r or record "
+                "richer data"
+            )
+        V[rows, start : start + size] = U[:, :size]
+        singular_values[name] = s
+        out_blocks[name] = (rows, np.arange(start, start + size))
+        start += size
+    return Basis(V, singular_values, out_blocks)
+
+
+def _weighted_pod(Q, r, W, rank_rtol):
+    import scipy.linalg
+
+    n = Q.shape[0]
+    if W.shape != (n, n):
+        raise InputError(f"weight must be ({n}, {n}), got {W.shape}")
+    try:
+        R = scipy.linalg.cholesky(0.5 * (W + W.T), lower=False)
+    except np.linalg.LinAlgError as exc:
+        raise InputError("weight is not symmetric positive definite (its Cholesky "
+                         "factorisation failed); pass an SPD inner-product matrix such as the "
+                         "mass matrix") from exc
+    U, s, _ = np.linalg.svd(R @ Q, full_matrices=False)
+    rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
+    if r > rank:
+        raise InputError(f"asked for {r} basis vectors but the snapshots have numerical rank {rank}")
+    V = scipy.linalg.solve_triangular(R, U[:, :r], lower=False)
+    return Basis(V, {"all": s}, {"all": (np.arange(n), np.arange(r))}, W)

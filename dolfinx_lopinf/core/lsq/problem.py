@@ -1,0 +1,262 @@
+"""The compressed least-squares problem and the certificate every strategy returns."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from .linalg import (
+    SPDSolver,
+    from_eig,
+    residual_norm2,
+    symmetric_normal_equations,
+    vech_index,
+)
+
+
+@dataclass
+class Certificate:
+    """How a solve went.
+
+    Attributes:
+        solver: the strategy that produced the answer (``"lyapunov"``, ``"admm"``, ``"ipm"``,
+            ``"symmetric-lsq"``, ``"barrier"``).
+        converged: whether it met its tolerance (``status`` says it in words).
+        iterations: its iteration count (0 for closed forms).
+        seconds: wall time of the solve.
+        method: the path of :class:`~dolfinx_lopinf.core.lsq.PSDBlocks` that answered
+            (``"symmetric-lsq"``, ``"ipm"``, ``"admm+face"``).
+        duality_gap: certified relative duality gap (f - g) / f.
+        face_ranks: rank of S_k - eps I per block at the answer.
+        face_multiplier_min: smallest eigenvalue of grad_S f at the answer (relative).
+        face_A_min: smallest relative eigenvalue of the face coordinates at the last polish.
+        primal_residual, dual_residual, rho: ADMM's relative residuals and penalty.
+        polish_attempts: how often ADMM + face tried an exact solve on a face.
+        stationarity, multiplier_min_eig, complementarity: KKT residuals (:func:`kkt`).
+        details: traces and the records of sub-solvers (``"ipm"``, ``"attempts"``, ...).
+
+    Fields left None are not part of :meth:`as_dict`.
+    """
+
+    solver: str
+    converged: bool
+    iterations: int = 0
+    seconds: float | None = None
+    method: str | None = None
+    duality_gap: float | None = None
+    face_ranks: list | None = None
+    face_multiplier_min: float | None = None
+    face_A_min: float | None = None
+    primal_residual: float | None = None
+    dual_residual: float | None = None
+    rho: float | None = None
+    polish_attempts: int | None = None
+    stationarity: float | None = None
+    multiplier_min_eig: float | None = None
+    complementarity: float | None = None
+    details: dict = field(default_factory=dict)
+
+    @property
+    def status(self) -> str:
+        return "optimal" if self.converged else "not converged"
+
+    def as_dict(self) -> dict:
+        """The set fields and the details, flat (the certificate dict of earlier versions)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "details"}
+        return {**{k: v for k, v in out.items() if v is not None}, **self.details}
+
+
+def kkt(L: np.ndarray, Z: np.ndarray, theta: np.ndarray, blocks: list[slice], eps: float) -> dict:
+    """KKT residuals of min ||Theta L + Z||^2 s.t. Theta[:, b] = sym >= eps I for b in blocks.
+
+    Returns relative residuals: ``stationarity`` (gradient on free columns and the
+    antisymmetric part on constrained ones), ``multiplier_min_eig`` (>= 0 at optimum) and
+    ``complementarity`` (0 at optimum), all divided by ||2 X||.
+    """
+    X = Z @ L.T
+    grad = 2.0 * ((theta @ L) @ L.T + X)
+    scale = max(np.linalg.norm(2.0 * X), 1e-300)
+    free = np.ones(theta.shape[1], dtype=bool)
+    mult_min, comp = np.inf, 0.0
+    for b in blocks:
+        free[b] = False
+        S = 0.5 * (grad[:, b] + grad[:, b].T)  # the multiplier of the PSD constraint
+        mult_min = min(mult_min, float(np.linalg.eigvalsh(S).min()))
+        Kb = theta[:, b]
+        comp += abs(float(np.sum(S * (Kb - eps * np.eye(Kb.shape[0])))))
+    stat = np.linalg.norm(grad[:, free]) if free.any() else 0.0
+    return {"stationarity": float(stat / scale),
+            "multiplier_min_eig": float(mult_min / scale) if blocks else 0.0,
+            "complementarity": float(comp / scale)}
+
+
+def eliminate_free(L: np.ndarray, Z: np.ndarray, free: np.ndarray):
+    """Minimise out the free columns of Theta.
+
+    With the columns reordered as [free, constrained] and G re-factored as L' L'^T
+    (L' = [[L_FF, 0], [L_SF, L_SS]] lower triangular, Z' = Z Q from a QR of (P L)^T),
+
+        ||Theta L + Z||^2 = ||Theta_F L_FF + Theta_S L_SF + Z'_F||^2 + ||Theta_S L_SS + Z'_S||^2,
+
+    and the first term vanishes for Theta_F = -(Theta_S L_SF + Z'_F) L_FF^{-1}.
+
+    Returns:
+        ``(L_SS, Z'_S, recover)`` where ``recover(Theta_S)`` gives Theta_F.
+    """
+    free = np.asarray(free, dtype=bool)
+    order = np.concatenate([np.flatnonzero(free), np.flatnonzero(~free)])
+    Q, R = np.linalg.qr(L[order].T)
+    Lp, Zp = R.T, Z @ Q
+    nf = int(free.sum())
+    L_FF, L_SF, L_SS = Lp[:nf, :nf], Lp[nf:, :nf], Lp[nf:, nf:]
+
+    def recover(theta_S):
+        rhs = theta_S @ L_SF + Zp[:, :nf]
+        return -scipy.linalg.solve_triangular(L_FF.T, rhs.T, lower=False).T
+
+    return L_SS, Zp[:, nf:], recover
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """min f(Theta) = ||Theta L + Z||_F^2 over Theta = [S_1 .. S_b, F] (r, p): b symmetric
+    blocks S_k >= eps I (r x r each), then ``n_free`` free columns F.
+
+    ``L`` (p, p) is the factor of the Gram matrix G = L L^T and ``Z`` (r, p) the data term
+    (:func:`dolfinx_lopinf.core.inference.gram_data`), so nothing here depends on the number of
+    snapshots. In the vech unknowns x of the blocks (no free columns),
+    f = x^T H x + 2 h^T x + ||Z||^2 with ``H, h = normal_equations``.
+    """
+
+    L: np.ndarray
+    Z: np.ndarray
+    n_blocks: int = 1
+    eps: float = 0.0
+    n_free: int = 0
+
+    def __post_init__(self):
+        r, p = self.Z.shape
+        if self.L.shape != (p, p) or p != self.n_blocks * r + self.n_free:
+            raise ValueError(f"L {self.L.shape} and Z {self.Z.shape} do not fit {self.n_blocks} "
+                             f"symmetric blocks and {self.n_free} free columns")
+
+    @property
+    def r(self) -> int:
+        return self.Z.shape[0]
+
+    @property
+    def block_slices(self) -> list[slice]:
+        return [slice(k * self.r, (k + 1) * self.r) for k in range(self.n_blocks)]
+
+    @property
+    def index(self):
+        return vech_index(self.r, self.n_blocks)
+
+    def objective(self, theta: np.ndarray) -> float:
+        """f(Theta) = ||Theta L + Z||_F^2."""
+        return residual_norm2(theta, self.L, self.Z)
+
+    def kkt(self, theta: np.ndarray) -> dict:
+        """KKT residuals of ``theta`` (see :func:`kkt`)."""
+        return kkt(self.L, self.Z, theta, self.block_slices, self.eps)
+
+    def without_free(self):
+        """``(problem on the blocks alone, recover)``: the free columns minimised out exactly
+        (:func:`eliminate_free`); ``recover(Theta_S)`` gives them back."""
+        free = np.zeros(self.L.shape[0], dtype=bool)
+        free[self.L.shape[0] - self.n_free:] = True
+        L_S, Z_S, recover = eliminate_free(self.L, self.Z, free)
+        return Problem(L_S, Z_S, self.n_blocks, self.eps), recover
+
+    @functools.cached_property
+    def normal_equations(self):
+        """(H, h) in the vech unknowns of the blocks (:func:`symmetric_normal_equations`)."""
+        self._blocks_only()
+        return symmetric_normal_equations(self.L, self.Z, self.n_blocks)
+
+    @functools.cached_property
+    def spd(self) -> SPDSolver:
+        """The equilibrated Cholesky of H (``ok`` False when H is singular)."""
+        return SPDSolver(self.normal_equations[0])
+
+    @functools.cached_property
+    def gradient_scale(self) -> float:
+        """||2 X|| (X = Z L^T): the scale of the KKT residuals."""
+        return max(2.0 * float(np.linalg.norm(self.Z @ self.L.T)), 1e-300)
+
+    def objective_x(self, x: np.ndarray) -> float:
+        """f at the vech unknowns x."""
+        return self.objective(self.index.theta(x))
+
+    def dual_gap(self, x: np.ndarray, lam: np.ndarray | None = None):
+        """Certified relative gap (f(x) - g(Lambda)) / f(x) of a feasible x, and the smallest
+        eigenvalue of grad_S f(x) (relative to ||2 X||).
+
+        For any Lambda >= 0, L(x') = f(x') - <Lambda, S(x') - eps I> has the minimiser x_s with
+        f(x) - g(Lambda) = (x - x_s)^T H (x - x_s) + <Lambda, S(x) - eps I>,
+        x - x_s = H^-1 v / 2, v = grad f(x) - D vech(Lambda): two nonnegative terms, no
+        cancellation. Lambda is the PSD part of grad_S f(x) and, when given, also ``lam``
+        (the interior point's multipliers); the smaller gap is a proof for both.
+        """
+        H, h = self.normal_equations
+        ix = self.index
+        grad = 2.0 * (H @ x + h)
+        lam_w, lam_Q = np.linalg.eigh(ix.blocks(grad / ix.Dw))
+        slack = ix.blocks(x) - self.eps * np.eye(self.r)
+        gaps = []
+        for lam_k in [from_eig(np.maximum(lam_w, 0.0), lam_Q)] + ([] if lam is None else [lam]):
+            v = grad - ix.Dw * ix.vech(lam_k)
+            gaps.append(0.25 * float(v @ self.spd.solve(v)) + float(np.sum(lam_k * slack)))
+        fx = self.objective_x(x)
+        return max(min(gaps), 0.0) / max(fx, 1e-300), float(lam_w.min()) / self.gradient_scale
+
+    def _blocks_only(self):
+        if self.n_free:
+            raise ValueError("minimise the free columns out first (Problem.without_free)")
+
+
+def symmetric_start(problem: Problem):
+    """The unconstrained symmetric minimiser x = -H^-1 h and, per block, whether it is >= eps I."""
+    x = -problem.spd.solve(problem.normal_equations[1])
+    return x, np.linalg.eigvalsh(problem.index.blocks(x))[:, 0] >= problem.eps
+
+
+def symmetric_answer(problem: Problem, x, t0: float):
+    """The symmetric minimiser is feasible, hence optimal (zero multipliers)."""
+    return problem.index.theta(x), Certificate(
+        "symmetric-lsq", True, 0, seconds=time.perf_counter() - t0, method="symmetric-lsq",
+        duality_gap=0.0, face_ranks=[problem.r] * problem.n_blocks, polish_attempts=0)
+
+
+class Strategy:
+    """A way to solve a :class:`Problem`: ``solve(problem) -> (Theta, Certificate)``.
+
+    The free columns are minimised out exactly first (:meth:`Problem.without_free`);
+    subclasses implement ``solve_blocks`` for a problem of symmetric blocks alone. Any object
+    with such a ``solve`` method can be passed as ``solver=`` to
+    :func:`dolfinx_lopinf.infer_mechanical`.
+    """
+
+    def solve(self, problem: Problem):
+        if not problem.n_free:
+            return self.solve_blocks(problem)
+        reduced, recover = problem.without_free()
+        theta_S, cert = self.solve_blocks(reduced)
+        return np.hstack([theta_S, recover(theta_S)]), cert
+
+    def solve_blocks(self, problem: Problem):  # pragma: no cover - the interface
+        raise NotImplementedError
+
+    def _one_block(self, problem: Problem):
+        if problem.n_blocks != 1:
+            raise ValueError(f"{type(self).__name__} solves one symmetric block, not "
+                             f"{problem.n_blocks}")
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if not k.startswith("_"))
+        return f"{type(self).__name__}({args})"

@@ -1,0 +1,617 @@
+"""Reduced Lagrangian models: simulate with the FOM's variational integrator, energy, outputs.
+
+A ``LagrangianROM`` is the forced Euler-Lagrange equation of
+
+    L_h(qh, qh_t) = 1/2 qh_t^T Mh qh_t - 1/2 qh^T Kh qh,   f_h = -Ch qh_t + Bh u,
+
+i.e. Mh qh_tt + Ch qh_t + Kh qh = Bh u, with output y = Eh qh (Mh = I for L-OpInf).
+
+Midpoint variational integrator in position-momentum form (p = Mh qh_t), step dt,
+discrete Lagrangian L_d(q0, q1) = dt L_h((q0+q1)/2, (q1-q0)/dt), discrete forces
+f_d^+- = dt/2 f_h(midpoint, slope, t+dt/2):
+
+    p0 + D1 L_d(q0, q1) + f_d^-  = 0  ->  (Mh + dt/2 Ch + dt^2/4 Kh) q1
+                                          = (Mh + dt/2 Ch - dt^2/4 Kh) q0 + dt p0 + dt^2/2 Bh u_mid
+    p1 = D2 L_d(q0, q1) + f_d^+   =  Mh (q1-q0)/dt - dt/4 Kh (q0+q1) - Ch (q1-q0)/2 + dt/2 Bh u_mid
+
+For a linear ROM one step is an affine map x1 = G x0 + H u_mid on x = [q; p], formed once.
+
+Newmark (gamma = 1/2, beta = 1/4, average acceleration; variational too) on x = [q; v],
+with a_k = Mh^{-1} (Bh u_k - Ch v_k - Kh q_k):
+
+    q* = q0 + dt v0 + dt^2/4 a0,   v* = v0 + dt/2 a0
+    (Mh + dt/2 Ch + dt^2/4 Kh) a1 = Bh u1 - Ch v* - Kh q*
+    q1 = q* + dt^2/4 a1,   v1 = v* + dt/2 a1              ->  x1 = G x0 + H0 u0 + H1 u1.
+
+Save/load to one ``.npz`` (operators, scheme, metadata, optionally basis rows); loading and
+simulating needs numpy only.
+
+Every operator is checked once at construction (real, finite, shapes; M invertible), and a
+model whose K, M or C are not those of a Lagrangian system (K, C not symmetric; K, M, C
+indefinite) is named in a :class:`~dolfinx_lopinf.errors.NonLagrangianWarning` unless
+``lagrangian=False`` says that is intended (standard OpInf), or refused with
+``lagrangian=True``. The forcing of a forced model is formed chunk by chunk while
+integrating, so memory does not grow with the number of steps.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._checks import (as_real_array, check_finite, check_int, check_matrix, check_positive,
+                      check_square, check_vector)
+from . import compiled
+from ..errors import FileFormatError, InputError, NonLagrangianWarning, StepFailedError
+from .io_atomic import atomic_savez, open_npz
+
+#: Steps whose forcing is formed at once (memory 2 r x _CHUNK floats, whatever n_steps is).
+_CHUNK = 1024
+#: Simplified Newton (jacobian="lazy"): refresh J when |dq_k| > _LAZY_THETA |dq_{k-1}|.
+_LAZY_THETA = 0.1
+#: Relative tolerance of the symmetry / definiteness checks of the operators.
+_STRUCTURE_RTOL = 1e-8
+
+
+def _initial_state(q0, v0, r):
+    q0, v0 = (as_real_array(a, name).reshape(-1) for a, name in ((q0, "q0"), (v0, "v0")))
+    if q0.shape != (r,) or v0.shape != (r,):
+        raise InputError(f"q0 and v0 must have shape ({r},), got {q0.shape} and {v0.shape}")
+    check_finite(q0, "q0", "pass a finite initial state")
+    check_finite(v0, "v0", "pass a finite initial velocity")
+    return q0, v0
+
+
+def _structure_problems(name, A):
+    """Why the square matrix A is not symmetric positive semidefinite, or [] (an exactly
+    singular M is refused separately)."""
+    out = []
+    top = float(np.max(np.abs(A)))
+    if top == 0:
+        return out
+    asym = float(np.max(np.abs(A - A.T)))
+    if asym > _STRUCTURE_RTOL * top:
+        out.append(f"{name} is not symmetric: max|{name} - {name}^T| = {asym:.3g} "
+                   f"({asym / top:.2g} of max|{name}|)")
+    eig = np.linalg.eigvalsh(0.5 * (A + A.T))
+    if eig[0] < -_STRUCTURE_RTOL * max(abs(eig[0]), abs(eig[-1])):
+        out.append(f"{name} is indefinite: the smallest eigenvalue of its symmetric part is "
+                   f"{eig[0]:.6g} (largest {eig[-1]:.6g})")
+    return out
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A ROM trajectory: times (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None;
+    ``seconds`` of integration, the ``backend`` that ran it (``"numpy"`` or ``"numba"``) and
+    ``info`` (the wave ROM's Newton counts: ``newton_iterations``, ``jacobians``)."""
+
+    times: np.ndarray
+    Qh: np.ndarray
+    Vh: np.ndarray
+    Y: np.ndarray | None = None
+    seconds: float = 0.0
+    backend: str = "numpy"
+    info: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LagrangianROM:
+    """Reduced model Mh qh_tt + Ch qh_t + Kh qh = Bh u,  y = Eh qh.
+
+    Attributes:
+        K: (r, r) stiffness.  M: (r, r) mass (identity when None).  C: (r, r) damping or None.
+        B: (r, m) input operator or None.  E: (p, r) output operator or None.
+        scheme: ``"midpoint"`` (inputs at step midpoints) or ``"newmark"`` (inputs at steps);
+            a ROM is integrated with the same scheme as its FOM.
+        meta: free-form, JSON-serialisable metadata (method, basis size, certificate, ...).
+    """
+
+    K: np.ndarray
+    M: np.ndarray | None = None
+    C: np.ndarray | None = None
+    B: np.ndarray | None = None
+    E: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+    scheme: str = "midpoint"
+    lagrangian: bool | None = None
+
+    def __post_init__(self):
+        if self.scheme not in ("midpoint", "newmark"):
+            raise InputError(f"scheme must be 'midpoint' or 'newmark', got {self.scheme!r}")
+        if self.lagrangian not in (None, True, False):
+            raise InputError(f"lagrangian must be None, True or False, got {self.lagrangian!r}")
+        K = check_square(self.K, "K")
+        object.__setattr__(self, "K", K)
+        r = K.shape[0]
+        for name in ("M", "C"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, check_square(getattr(self, name), name, r))
+        if self.M is not None:
+            s = np.linalg.svd(self.M, compute_uv=False)
+            if s[-1] <= r * np.finfo(float).eps * s[0] or s[0] == 0:
+                raise InputError(f"M is singular (singular values {s[0]:.3g} .. {s[-1]:.3g}); "
+                                 "the mass matrix must be invertible")
+        if self.B is not None:
+            B = as_real_array(self.B, "B")
+            if B.ndim == 1 and B.shape == (r,):
+                B = B.reshape(r, 1)
+            if B.ndim != 2 or B.shape[0] != r or B.shape[1] == 0:
+                raise InputError(f"B must have shape ({r}, m) with m >= 1, got {B.shape} "
+                                 "(pass B=None for an unforced model)")
+            check_finite(B, "B", "an operator must be finite (did its fit fail?)")
+            object.__setattr__(self, "B", B)
+        if self.E is not None:
+            E = as_real_array(self.E, "E")
+            E = E.reshape(1, -1) if E.ndim == 1 else E
+            if E.ndim != 2 or E.shape[1] != r or E.shape[0] == 0:
+                raise InputError(f"E must have shape (p, {r}), got {E.shape}")
+            check_finite(E, "E", "an operator must be finite (did its fit fail?)")
+            object.__setattr__(self, "E", E)
+        if self.lagrangian is not False:
+            problems = _structure_problems("K", K)
+            for name in ("M", "C"):
+                if getattr(self, name) is not None:
+                    problems += _structure_problems(name, getattr(self, name))
+            if problems:
+                msg = ("; ".join(problems) + ". This model is not the Euler-Lagrange equation of "
+                       "a Lagrangian: its energy is neither conserved nor dissipated and its "
+                       "trajectory may grow without bound (infer_mechanical fits a structured "
+                       "model). Pass lagrangian=False if that is intended (e.g. standard "
+                       "OpInf), lagrangian=True to make this an error.")
+                if self.lagrangian:
+                    raise InputError(msg)
+                warnings.warn(msg, NonLagrangianWarning, stacklevel=3)
+
+    @property
+    def r(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def mass(self) -> np.ndarray:
+        return np.eye(self.r) if self.M is None else self.M
+
+    def energy(self, Qh: np.ndarray, Vh: np.ndarray) -> np.ndarray:
+        """ROM energy 1/2 v^T Mh v + 1/2 q^T Kh q for (r, K) arrays (per column)."""
+        M, K = self.mass, self.K
+        Qh, Vh = as_real_array(Qh, "Qh"), as_real_array(Vh, "Vh")
+        if Qh.ndim != 2 or Qh.shape[0] != self.r or Vh.shape != Qh.shape:
+            raise InputError(f"Qh and Vh must both be ({self.r}, K) arrays, got {Qh.shape} and "
+                             f"{Vh.shape}")
+        # non-finite columns (a trajectory that blew up) give non-finite energies: a result
+        return 0.5 * np.einsum("ik,ij,jk->k", Vh, M, Vh) + 0.5 * np.einsum("ik,ij,jk->k", Qh, K, Qh)
+
+    def propagator(self, dt: float) -> tuple[np.ndarray, np.ndarray | None]:
+        """(G, H): one midpoint step is [q1; p1] = G [q0; p0] + H u_mid."""
+        dt = check_positive(dt, "dt")
+        M, K = self.mass, self.K
+        C = np.zeros_like(K) if self.C is None else self.C
+        A = M + 0.5 * dt * C + 0.25 * dt**2 * K
+        rhs_q = np.hstack([M + 0.5 * dt * C - 0.25 * dt**2 * K, dt * np.eye(self.r)])
+        Gq = np.linalg.solve(A, rhs_q)  # q1 = Gq [q0; p0] (+ input part)
+        Pq1 = M / dt - 0.25 * dt * K - 0.5 * C  # p1 = Pq1 q1 - Pq0 q0 (+ input part)
+        Pq0 = np.hstack([M / dt + 0.25 * dt * K - 0.5 * C, np.zeros_like(K)])
+        G = np.vstack([Gq, Pq1 @ Gq - Pq0])
+        H = None
+        if self.B is not None:
+            Hq = np.linalg.solve(A, 0.5 * dt**2 * self.B)
+            H = np.vstack([Hq, Pq1 @ Hq + 0.5 * dt * self.B])
+        return G, H
+
+    def newmark_propagator(self, dt: float):
+        """(G, H0, H1): one Newmark step is [q1; v1] = G [q0; v0] + H0 u0 + H1 u1."""
+        dt = check_positive(dt, "dt")
+        r, M, K = self.r, self.mass, self.K
+        C = np.zeros_like(K) if self.C is None else self.C
+        m = 0 if self.B is None else self.B.shape[1]
+        B = np.zeros((r, m)) if self.B is None else self.B
+        A = M + 0.5 * dt * C + 0.25 * dt**2 * K
+        # columns: q0 (r), v0 (r), u0 (m), u1 (m)
+        n_in = 2 * r + 2 * m
+        Iq, Iv = np.eye(r, n_in), np.eye(r, n_in, r)
+        U0 = np.zeros((m, n_in)); U0[:, 2 * r:2 * r + m] = np.eye(m)
+        U1 = np.zeros((m, n_in)); U1[:, 2 * r + m:] = np.eye(m)
+        a0 = np.linalg.solve(M, B @ U0 - C @ Iv - K @ Iq)
+        qs, vs = Iq + dt * Iv + 0.25 * dt**2 * a0, Iv + 0.5 * dt * a0
+        a1 = np.linalg.solve(A, B @ U1 - C @ vs - K @ qs)
+        X1 = np.vstack([qs + 0.25 * dt**2 * a1, vs + 0.5 * dt * a1])
+        return X1[:, :2 * r], X1[:, 2 * r:2 * r + m], X1[:, 2 * r + m:]
+
+    def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1,
+                 backend: str = "auto") -> Trajectory:
+        """Integrate with the midpoint variational integrator (or Newmark, see ``scheme``).
+
+        Args:
+            q0, v0: (r,) initial reduced position and velocity.
+            dt: time step; n_steps: number of steps; every: keep every ``every``-th step.
+            inputs: for a forced ROM, a callable u(t) -> (m,), or an array of inputs: (m,
+                n_steps) at the step midpoints t_k + dt/2 (midpoint) or (m, n_steps + 1) at
+                t_0 .. t_n (Newmark).
+            backend: ``"numpy"`` (the reference loop), ``"numba"`` (the compiled loop of
+                :mod:`dolfinx_lopinf.core.compiled`: the same propagator and forcing, equal to
+                rounding) or ``"auto"`` (numba when installed and not disabled by
+                ``DOLFINX_LOPINF_JIT=0``). Compilation happens before the timer starts.
+
+        Returns:
+            :class:`Trajectory` sampled at t = 0, every*dt, ... (velocities v = Mh^{-1} p).
+        """
+        r = self.r
+        q0, v0 = _initial_state(q0, v0, r)
+        n_steps = check_int(n_steps, "n_steps", 0)
+        every = check_int(every, "every", 1)
+        dt = check_positive(dt, "dt")
+        backend = compiled.resolve_backend(backend)
+        if backend == "numba":
+            compiled.kernels()  # compile / load from the cache outside the timed region
+        chunks = self._input_chunks(inputs, dt, n_steps)
+        t0 = time.perf_counter()
+        n_out = n_steps // every + 1
+        X = np.empty((2 * r, n_out))
+        if self.scheme == "midpoint":
+            G, H = self.propagator(dt)
+            x = np.concatenate([q0, self.mass @ v0])
+        else:
+            G, H0, H1 = self.newmark_propagator(dt)
+            x = np.concatenate([q0, v0])
+        X[:, 0] = x
+        j = 1
+        timing = {"inputs": 0.0}  # evaluating a callable input is not integration time
+
+        def forcing_chunks():
+            """(k0, k1, the forcing rows f_k of steps k0 .. k1-1 as a (2r, k1-k0) array)."""
+            for k0 in range(0, n_steps, _CHUNK):
+                k1 = min(k0 + _CHUNK, n_steps)
+                ti = time.perf_counter()
+                U = chunks(k0, k1)
+                timing["inputs"] += time.perf_counter() - ti
+                yield k0, k1, (H @ U if self.scheme == "midpoint"
+                               else H0 @ U[:, :-1] + H1 @ U[:, 1:])
+
+        if backend == "numba":
+            G, x = np.ascontiguousarray(G), np.ascontiguousarray(x)
+            if chunks is None:
+                compiled.affine_run(G, x, None, n_steps, 0, every, X, j)
+            else:
+                for k0, k1, forcing in forcing_chunks():
+                    j = compiled.affine_run(G, x, np.ascontiguousarray(forcing.T), k1 - k0, k0,
+                                            every, X, j)
+        elif chunks is None:
+            for k in range(n_steps):
+                x = G @ x
+                if (k + 1) % every == 0:
+                    X[:, j] = x
+                    j += 1
+        else:
+            for k0, k1, forcing in forcing_chunks():
+                for i in range(k1 - k0):
+                    x = G @ x
+                    x += forcing[:, i]
+                    if (k0 + i + 1) % every == 0:
+                        X[:, j] = x
+                        j += 1
+        input_seconds = timing["inputs"]
+        Qh = X[:r]
+        Vh = X[r:]  # Newmark: velocities; midpoint: momenta p = M v (M = I when None)
+        if self.scheme == "midpoint" and self.M is not None:
+            Vh = np.linalg.solve(self.M, Vh)
+        seconds = time.perf_counter() - t0 - input_seconds
+        Y = None if self.E is None else self.E @ Qh
+        times = dt * every * np.arange(n_out)
+        return Trajectory(times, Qh, Vh, Y, seconds, backend)
+
+    def _input_chunks(self, inputs, dt, n_steps):
+        """None for an unforced model, else chunk(k0, k1) -> the inputs of steps k0 .. k1-1:
+        (m, k1-k0) at the step midpoints (midpoint) or (m, k1-k0+1) at t_k0 .. t_k1 (Newmark).
+        An array is checked once here; a callable's values are checked chunk by chunk."""
+        if self.B is None:
+            if inputs is not None:
+                raise InputError("this ROM has no input operator B; do not pass inputs")
+            return None
+        m = self.B.shape[1]
+        if inputs is None:
+            raise InputError(f"this ROM is forced (B has {m} columns): pass inputs")
+        midpoint = self.scheme == "midpoint"
+        n_u = n_steps if midpoint else n_steps + 1
+        where = "step midpoints" if midpoint else "steps t_0 .. t_n"
+        if not callable(inputs):
+            U = as_real_array(inputs, "inputs")
+            U = U.reshape(1, -1) if U.ndim == 1 else U
+            if U.shape != (m, n_u):
+                raise InputError(f"inputs must have shape ({m}, {n_u}) (m inputs at the {where}), "
+                                 f"got {U.shape}")
+            check_finite(U, "inputs", "the forcing must be finite")
+            return lambda k0, k1: U[:, k0:k1 + (not midpoint)]
+
+        last = {}
+
+        def chunk(k0, k1):
+            steps = np.arange(k0, k1) if midpoint else np.arange(k0, k1 + 1)
+            times = dt * (steps + 0.5) if midpoint else dt * steps
+            cols = [np.atleast_1d(np.asarray(inputs(t))) for t in times[1 if k0 in last else 0:]]
+            if k0 in last:  # Newmark: u(t_k0) was the last column of the previous chunk
+                cols.insert(0, last.pop(k0))
+            try:
+                U = np.column_stack(cols)
+            except ValueError:
+                sizes = sorted({c.shape for c in cols})
+                raise InputError(f"inputs(t) returned arrays of different shapes {sizes}; it "
+                                 f"must return ({m},) at every t") from None
+            U = as_real_array(U, "inputs(t)")
+            if U.shape != (m, len(times)):
+                raise InputError(f"inputs(t) must return {m} value(s) (one per column of B), "
+                                 f"got shape {cols[0].shape} at t = {times[0]:.6g}")
+            finite = np.isfinite(U)
+            if not finite.all():
+                i, k = np.argwhere(~finite)[0]
+                raise InputError(f"inputs(t) returned a non-finite value {U[i, k]} (input {i}) "
+                                 f"at t = {times[k]:.6g}; the forcing must be finite")
+            if not midpoint:
+                last[k1] = U[:, -1]
+            return U
+
+        return chunk
+
+
+def _json_default(value):
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
+             rows: np.ndarray | None = None) -> Path:
+    """Write a ROM to one ``.npz``: operators, scheme, metadata (JSON) and optionally rows of
+    its basis (e.g. the dofs of an output point, for partial reconstruction). The write is
+    atomic: an interrupted save leaves any previous file at ``path`` intact.
+
+    Args:
+        basis_rows: (len(rows), r) rows of the basis V to ship with the ROM.
+        rows: their indices in the full state.
+
+    Returns:
+        The path written (``.npz`` appended unless ``path`` ends in it).
+    """
+    if not isinstance(rom, LagrangianROM):
+        raise InputError(f"rom must be a LagrangianROM, got {type(rom).__name__}")
+    try:
+        meta = json.dumps(rom.meta, default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"rom.meta must be JSON-serialisable (numbers, strings, lists, dicts, "
+                         f"numpy scalars/arrays): {exc}") from None
+    arrays = {"K": rom.K, "scheme": np.array(rom.scheme), "meta": np.array(meta),
+              "lagrangian": np.array(json.dumps(rom.lagrangian))}
+    for name in ("M", "C", "B", "E"):
+        if getattr(rom, name) is not None:
+            arrays[name] = getattr(rom, name)
+    if basis_rows is not None:
+        basis_rows = check_matrix(basis_rows, "basis_rows")
+        if basis_rows.shape[1] != rom.r:
+            raise InputError(f"basis_rows must be (k, {rom.r}), got {basis_rows.shape}")
+        if rows is None:
+            rows = np.arange(len(basis_rows))
+        rows = np.asarray(rows)
+        if rows.dtype.kind not in "iu" or rows.shape != (len(basis_rows),):
+            raise InputError(f"rows must be {len(basis_rows)} integer indices (one per row of "
+                             f"basis_rows), got {rows.dtype} of shape {rows.shape}")
+        arrays["basis_rows"] = basis_rows
+        arrays["rows"] = rows
+    elif rows is not None:
+        raise InputError("rows given without basis_rows; pass both or neither")
+    return atomic_savez(path, **arrays)
+
+
+def load_rom(path) -> tuple[LagrangianROM, dict]:
+    """Read a ROM written by :func:`save_rom`; returns ``(rom, extras)`` where extras may hold
+    ``basis_rows`` and ``rows``.
+
+    Raises:
+        FileNotFoundError: no such file.
+        FileFormatError: naming the file, when it is not a ROM file (text, a single ``.npy``,
+            truncated or corrupt, no ``K`` or ``scheme``, unreadable metadata) or its operators
+            are invalid (non-finite, wrong shapes).
+    """
+    what = "ROM (save_rom)"
+    with open_npz(path, what) as (data, read):
+        missing = [k for k in ("K", "scheme") if k not in data.files]
+        if missing:
+            hint = " (a Snapshots file? use Snapshots.load)" if "Q" in data.files else ""
+            raise FileFormatError(f"{path}: lacks {', '.join(map(repr, missing))} (entries found: "
+                                  f"{sorted(data.files)}); not a file written by save_rom{hint}")
+        kw = {name: read(name) for name in ("K", "M", "C", "B", "E") if name in data.files}
+        scheme = read("scheme")
+        texts = {"meta": "{}", "lagrangian": "null"}
+        for key in texts:
+            if key in data.files:
+                value = read(key)
+                if value.dtype.kind != "U" or value.ndim != 0:
+                    raise FileFormatError(f"{path}: entry {key!r} must be a JSON string, got "
+                                          f"{value.dtype} of shape {value.shape}")
+                texts[key] = str(value)
+        extras = {k: read(k) for k in ("basis_rows", "rows") if k in data.files}
+    if scheme.ndim != 0 or scheme.dtype.kind != "U":
+        raise FileFormatError(f"{path}: entry 'scheme' must be a string, got {scheme.dtype} of "
+                              f"shape {scheme.shape}")
+    parsed = {}
+    for key, text in texts.items():
+        try:
+            parsed[key] = json.loads(text)
+        except ValueError as exc:
+            raise FileFormatError(f"{path}: entry {key!r} is not valid JSON ({exc}): "
+                                  f"{text[:60]!r}") from None
+    if parsed["lagrangian"] not in (None, True, False):
+        raise FileFormatError(f"{path}: entry 'lagrangian' must be null, true or false, got "
+                              f"{texts['lagrangian']!r}")
+    try:
+        rom = LagrangianROM(**kw, scheme=str(scheme), meta=parsed["meta"],
+                            lagrangian=parsed["lagrangian"])
+    except InputError as exc:
+        raise FileFormatError(f"{path}: the stored ROM is invalid: {exc}") from exc
+    return rom, extras
+
+
+@dataclass(frozen=True)
+class WaveROM:
+    """Gray-box Lagrangian wave ROM  qh_tt = Kh qh - V^T (w * g(V qh))  (METHOD.md s. 4).
+
+    It is the Euler-Lagrange equation of
+        L_h = 1/2 |qh_t|^2 + 1/2 qh^T Kh qh - sum_i w_i U(V_i qh),
+    so the midpoint variational integrator applies (one small Newton solve per step).
+
+    Attributes:
+        K: (r, r) symmetric Kh.
+        V: (s, r) the basis rows the nonlinearity is sampled at (all n rows, or a
+            hyper-reduced subset).
+        g, dg, U: numpy functions of the pointwise nonlinearity, U' = g, g' = dg.
+        weights: (s,) sampling weights w_i (ones without hyper-reduction).
+        meta: free-form metadata.
+    """
+
+    K: np.ndarray
+    V: np.ndarray
+    g: object
+    dg: object
+    U: object
+    weights: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        K = check_square(self.K, "K")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "V", check_matrix(self.V, "V", cols=K.shape[0]))
+        if self.weights is not None:
+            w = check_vector(self.weights, "weights", self.V.shape[0])
+            if np.any(w < 0):
+                raise InputError(f"weights must be >= 0 (ECSW weights), got min {w.min():.3g}")
+            object.__setattr__(self, "weights", w)
+        for name in ("g", "dg", "U"):
+            if not callable(getattr(self, name)):
+                raise InputError(f"{name} must be a callable (a numpy function of the pointwise "
+                                 f"nonlinearity), got {type(getattr(self, name)).__name__}")
+
+    @property
+    def r(self) -> int:
+        return self.K.shape[0]
+
+    def _w(self):
+        return np.ones(self.V.shape[0]) if self.weights is None else self.weights
+
+    def force(self, qh: np.ndarray) -> np.ndarray:
+        """Reduced nonlinear force V^T (w * g(V qh)) for (r,) or (r, K)."""
+        w = self._w()
+        z = self.V @ qh
+        return self.V.T @ ((w if z.ndim == 1 else w[:, None]) * self.g(z))
+
+    def energy(self, Qh: np.ndarray, Vh: np.ndarray) -> np.ndarray:
+        """ROM energy 1/2 |v|^2 - 1/2 q^T Kh q + sum_i w_i U(V_i q), per column."""
+        pot = self._w() @ self.U(self.V @ Qh)
+        return 0.5 * np.sum(Vh**2, axis=0) - 0.5 * np.einsum("ik,ij,jk->k", Qh, self.K, Qh) + pot
+
+    def simulate(self, q0, v0, dt: float, n_steps: int, *, every: int = 1, tol: float = 1e-12,
+                 max_newton: int = 20, jacobian: str = "fresh", backend: str = "auto") -> Trajectory:
+        """Midpoint variational integrator in position-momentum form (p = qh_t):
+
+            R(q1) = p0 - (q1 - q0)/dt + dt/2 (Kh m - F(m)) = 0,  m = (q0 + q1)/2
+            p1    = (q1 - q0)/dt + dt/2 (Kh m - F(m)),
+
+        each step solved by Newton with J = -I/dt + dt/4 (Kh - V^T diag(w g'(V m)) V), from
+        the predictor q1 = q0 + dt p0, stopped when |dq| <= tol max(|q1|, 1).
+
+        Args:
+            jacobian: ``"fresh"`` (Newton: J at every iterate) or ``"lazy"`` (simplified
+                Newton: the last J is kept, across steps too, and formed afresh at the next
+                iterate only when convergence slows, |dq_k| > theta |dq_{k-1}| with
+                theta = 0.1). Same stopping test; the converged states agree to the Newton
+                tolerance.
+            backend: ``"numpy"`` (the reference loop, any g), ``"numba"`` (the compiled loop of
+                :mod:`dolfinx_lopinf.core.compiled`; for g = sin, dg = cos, the sine-Gordon
+                nonlinearity, also as compiled from UFL by ``nonlinear.identify``) or
+                ``"auto"`` (numba when installed, enabled and g is sin, else numpy).
+
+        Raises ``RuntimeError`` naming the step if Newton does not converge.
+        """
+        r, K, V, w = self.r, self.K, self.V, self._w()
+        q, p = (a.copy() for a in _initial_state(q0, v0, r))
+        dt = check_positive(dt, "dt")
+        n_steps = check_int(n_steps, "n_steps", 0)
+        every = check_int(every, "every", 1)
+        max_newton = check_int(max_newton, "max_newton", 1)
+        tol = check_positive(tol, "tol")
+        if jacobian not in ("fresh", "lazy"):
+            raise InputError(f"jacobian must be 'fresh' or 'lazy', got {jacobian!r}")
+        lazy = jacobian == "lazy"
+        requested = backend
+        backend = compiled.resolve_backend(backend)
+        if backend == "numba":
+            if not compiled.is_sine(self.g, self.dg):
+                if requested == "numba":
+                    raise InputError("backend='numba' compiles the wave ROM for g = sin, dg = cos "
+                                     "(sine-Gordon) only; this ROM's g is another function - "
+                                     "pass backend='auto' or 'numpy'")
+                backend = "numpy"
+            else:
+                compiled.kernels()  # compile / load from the cache outside the timed region
+        t0 = time.perf_counter()
+        n_out = n_steps // every + 1
+        Q, P = np.empty((r, n_out)), np.empty((r, n_out))
+        Q[:, 0], P[:, 0] = q, p
+        if backend == "numba":
+            stats = np.zeros(3, dtype=np.int64)
+            C = np.ascontiguousarray
+            rnorm = compiled.kernels()["_wave_sine_run"](
+                C(K.T), C(V), C(V.T), C(w, dtype=float), C(q), C(p), dt, n_steps, every, tol,
+                max_newton, lazy, _LAZY_THETA, Q, P, stats)
+            if stats[0] > 0:
+                k = int(stats[0])
+                raise StepFailedError(f"reduced Newton did not converge at step {k} "
+                                      f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}; try a smaller dt")
+            if stats[0] < 0:
+                raise np.linalg.LinAlgError(f"Singular matrix (the Newton Jacobian at step "
+                                            f"{-int(stats[0])})")
+            info = {"newton_iterations": int(stats[2]), "jacobians": int(stats[1])}
+            return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
+                              backend, info)
+        eye = np.eye(r)
+        J = None
+        n_it = n_jac = 0
+        j = 1
+        for k in range(n_steps):
+            q1 = q + dt * p  # explicit predictor
+            refresh = not lazy or J is None
+            prev = np.inf
+            for _ in range(max_newton):
+                n_it += 1
+                m = 0.5 * (q + q1)
+                z = V @ m
+                F = V.T @ (w * self.g(z))
+                R = p - (q1 - q) / dt + 0.5 * dt * (K @ m - F)
+                if refresh:
+                    J = -eye / dt + 0.25 * dt * (K - (V.T * (w * self.dg(z))) @ V)
+                    n_jac += 1
+                    refresh = not lazy
+                dq = np.linalg.solve(J, -R)
+                q1 = q1 + dq
+                step = np.linalg.norm(dq)
+                if step <= tol * max(np.linalg.norm(q1), 1.0):
+                    break
+                if lazy and step > _LAZY_THETA * prev:
+                    refresh = True  # convergence slowed: a fresh Jacobian at the next iterate
+                prev = step
+            else:
+                raise StepFailedError(f"reduced Newton did not converge at step {k + 1} "
+                                      f"(t = {(k + 1) * dt:.6g}): |R| = {np.linalg.norm(R):.3e}; "
+                                      "try a smaller dt")
+            m = 0.5 * (q + q1)
+            p = (q1 - q) / dt + 0.5 * dt * (K @ m - V.T @ (w * self.g(V @ m)))
+            q = q1
+            if (k + 1) % every == 0:
+                Q[:, j], P[:, j] = q, p
+                j += 1
+        return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
+                          backend, {"newton_iterations": n_it, "jacobians": n_jac})

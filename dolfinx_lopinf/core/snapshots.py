@@ -1,0 +1,192 @@
+"""Snapshot data: the only thing the non-intrusive inference ever sees.
+
+``Snapshots`` holds states Q (n, K) at uniform times (K,), optional velocities (n, K),
+inputs U (m, K), outputs Y (p, K) and energies (K,), with named row blocks of Q (for
+the beam: ``{"w": ..., "theta": ...}``), and optionally the name of the integrator that
+produced them (``scheme``: ``"newmark"``, ``"midpoint"`` or ``"continuous"``; None when
+unknown). It is a plain numpy object: it can be saved to one ``.npz`` and loaded where there
+is no DOLFINx.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from ._checks import as_real_array, check_blocks, check_finite, check_matrix, check_uniform_times
+from ..errors import FileFormatError, InputError
+from .io_atomic import atomic_savez_compressed, open_npz
+
+#: The integrators a recording can declare (``Snapshots.scheme``); None means "unknown"
+#: (``lo.fit`` then decides from the data, ``scheme="auto"``).
+RECORDED_SCHEMES = ("newmark", "midpoint", "continuous")
+
+
+def check_scheme(scheme, name: str = "scheme") -> str | None:
+    """``scheme`` as a plain str from :data:`RECORDED_SCHEMES`, or None; an
+    :class:`~dolfinx_lopinf.errors.InputError` naming the bad value and the choices otherwise."""
+    if scheme is None:
+        return None
+    if isinstance(scheme, str) and str(scheme) in RECORDED_SCHEMES:
+        return str(scheme)
+    hint = ""
+    if isinstance(scheme, str) and scheme.strip().lower() in RECORDED_SCHEMES:
+        hint = f" (did you mean {scheme.strip().lower()!r}?)"
+    elif isinstance(scheme, str) and scheme.strip().lower() == "auto":
+        hint = " (for an integrator you do not know, pass None: lo.fit then decides from the data)"
+    raise InputError(f"{name} must be None or one of {RECORDED_SCHEMES} (the integrator that "
+                     f"produced the snapshots), got {scheme!r}{hint}")
+
+
+@dataclass(frozen=True)
+class Snapshots:
+    """Time samples of a full-order trajectory.
+
+    Attributes:
+        times: (K,) uniformly spaced sample times.
+        Q: (n, K) states; column k is the state at ``times[k]``.
+        blocks: name -> row indices of Q for physically different parts of the state.
+        V: (n, K) velocities, or None.
+        U: (m, K) inputs, or None.
+        Y: (p, K) outputs, or None.
+        energy: (K,) FOM energy, or None.
+        output_times: (K_y,) times of ``Y`` when outputs are recorded on their own grid
+            (e.g. a long run that keeps only outputs); None means ``times``.
+        scheme: the integrator that produced the states, one of :data:`RECORDED_SCHEMES`
+            (``"newmark"``: average-acceleration Newmark; ``"midpoint"``: the midpoint
+            variational integrator; ``"continuous"``: any other, e.g. an adaptive or
+            generalised-alpha solver), or None when unknown.
+    """
+
+    times: np.ndarray
+    Q: np.ndarray
+    blocks: dict = field(default_factory=dict)
+    V: np.ndarray | None = None
+    U: np.ndarray | None = None
+    Y: np.ndarray | None = None
+    energy: np.ndarray | None = None
+    output_times: np.ndarray | None = None
+    scheme: str | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "scheme", check_scheme(self.scheme))
+        dt = check_uniform_times(self.times)
+        times = as_real_array(self.times, "times")
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "_dt", dt)
+        K = len(times)
+        object.__setattr__(self, "Q", check_matrix(self.Q, "Q", cols=K))
+        n = self.Q.shape[0]
+        for name in ("V", "U", "energy"):
+            value = getattr(self, name)
+            if value is None:
+                continue
+            value = as_real_array(value, name)
+            ok = {"V": value.shape == self.Q.shape, "U": value.ndim in (1, 2),
+                  "energy": value.ndim == 1}[name] and value.shape[-1] == K
+            if not ok:
+                want = {"V": f"{self.Q.shape} like Q", "U": f"(m, {K})", "energy": f"({K},)"}[name]
+                raise InputError(f"{name} has shape {value.shape}; it must be {want} (one "
+                                 f"column per sample time)")
+            check_finite(value, name)
+            object.__setattr__(self, name, value)
+        ty = None
+        if self.output_times is not None:
+            if self.Y is None:
+                raise InputError("output_times given without Y; pass the outputs Y too (or drop "
+                                 "output_times)")
+            ty = as_real_array(self.output_times, "output_times")
+            if ty.ndim != 1 or len(ty) < 1:
+                raise InputError(f"output_times must be a non-empty 1-D array, got shape {ty.shape}")
+            check_finite(ty, "output_times")
+            if len(ty) > 1 and np.min(np.diff(ty)) <= 0:
+                k = int(np.argmin(np.diff(ty)))
+                raise InputError(f"output_times must be strictly increasing; output_times[{k}] = "
+                                 f"{float(ty[k])!r} is followed by {float(ty[k + 1])!r}")
+            object.__setattr__(self, "output_times", ty)
+        if self.Y is not None:
+            Y = as_real_array(self.Y, "Y")
+            Y = Y.reshape(1, -1) if Y.ndim == 1 else Y
+            object.__setattr__(self, "Y", check_matrix(Y, "Y", cols=K if ty is None else len(ty)))
+        object.__setattr__(self, "blocks", check_blocks(self.blocks, n))
+
+    @property
+    def dt(self) -> float:
+        """The sample spacing (mean of the differences, exact to rounding even when the times
+        carry a large offset)."""
+        return self._dt
+
+    @property
+    def n_states(self) -> int:
+        return self.Q.shape[0]
+
+    def window(self, t_start: float, t_stop: float) -> "Snapshots":
+        """The samples with ``t_start <= t <= t_stop`` (outputs on their own grid are cut too)."""
+        for name, value in (("t_start", t_start), ("t_stop", t_stop)):
+            try:
+                bad = isinstance(value, (str, bytes, complex)) or np.isnan(float(value))
+            except (TypeError, ValueError):
+                bad = True
+            if bad:
+                raise InputError(f"{name} must be a real number (inf allowed), got {value!r}")
+        tol = 1e-9 * self.dt + 2 * np.finfo(float).eps * np.max(np.abs(self.times))
+        keep = (self.times >= t_start - tol) & (self.times <= t_stop + tol)
+        if keep.sum() < 2:
+            raise InputError(f"window [{t_start}, {t_stop}] holds fewer than 2 samples")
+
+        def cut(a):
+            return None if a is None else a[..., keep]
+
+        Y, ty = self.Y, self.output_times
+        if Y is not None and ty is None:
+            Y = Y[:, keep]
+        elif Y is not None:
+            ykeep = (ty >= t_start - tol) & (ty <= t_stop + tol)
+            Y, ty = Y[:, ykeep], ty[ykeep]
+        return replace(self, times=self.times[keep], Q=self.Q[:, keep], V=cut(self.V),
+                       U=cut(self.U), energy=cut(self.energy), Y=Y, output_times=ty)
+
+    def save(self, path: str | Path) -> Path:
+        """Write all arrays to one compressed ``.npz``, atomically (a temporary file in the
+        same directory replaces ``path`` once complete; an interrupted save leaves the
+        previous file intact). Returns the path written: ``.npz`` is appended unless
+        ``path`` already ends in it."""
+        arrays = {k: v for k, v in self.__dict__.items()
+                  if isinstance(v, np.ndarray) and not k.startswith("_")}
+        arrays.update({f"block__{k}": v for k, v in self.blocks.items()})
+        if self.scheme is not None:
+            arrays["scheme"] = np.array(self.scheme)  # 0-d unicode: loads without pickle
+        return atomic_savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Snapshots":
+        """Read a file written by :meth:`save`. Raises
+        :class:`~dolfinx_lopinf.errors.FileFormatError` naming the file when it is not such
+        a file (another format, truncated, missing or unknown entries), and
+        ``FileNotFoundError`` when it does not exist."""
+        fields = {"times", "Q", "V", "U", "Y", "energy", "output_times", "scheme"}
+        with open_npz(path, "snapshots (Snapshots.save)") as (data, read):
+            names = [k for k in data.files if not k.startswith("block__")]
+            missing = [k for k in ("times", "Q") if k not in names]
+            if missing:
+                raise FileFormatError(f"{path}: lacks {', '.join(map(repr, missing))} "
+                                      f"(entries found: {sorted(data.files)}); not a file "
+                                      "written by Snapshots.save")
+            unknown = sorted(set(names) - fields)
+            if unknown:
+                raise FileFormatError(f"{path}: unknown entries {unknown}; not a file written "
+                                      "by Snapshots.save (a ROM? use load_rom)")
+            kw = {k: read(k) for k in names}
+            if "scheme" in kw:  # absent in files written before the field existed: None
+                value = kw["scheme"]
+                if value.ndim != 0 or value.dtype.kind != "U":
+                    raise FileFormatError(f"{path}: entry 'scheme' must be one text value, got "
+                                          f"dtype {value.dtype} shape {value.shape}")
+                kw["scheme"] = str(value[()])
+            kw["blocks"] = {k[7:]: read(k) for k in data.files if k.startswith("block__")}
+        try:
+            return cls(**kw)
+        except InputError as exc:
+            raise FileFormatError(f"{path}: the stored snapshots are invalid: {exc}") from exc

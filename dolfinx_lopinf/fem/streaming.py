@@ -1,0 +1,171 @@
+"""Snapshot POD whose memory does not grow with n x K: snapshots go to disk as they come.
+
+    pod = StreamingPOD(V, capacity=401, weight=M)    # M: PETSc matrix (mass), or None
+    for k in range(...):
+        ... one FOM step ...
+        pod.append(q)                                 # dolfinx Function or owned array
+    basis_local, Qh, lam = pod.compute(r)             # collective
+
+or, in the one time loop, as a sink: ``fom.run(integrator, n, sinks=[pod.sink(until_step=400)])``.
+
+The method of snapshots in the W inner product (W = M gives a mass-orthonormal basis, the
+reduced mass is then exactly I):
+
+    G = Q^T W Q = Psi diag(lam) Psi^T   (K x K),
+    V = Q Psi_r diag(lam_r)^-1/2        (V^T W V = I),
+    Qh = V^T W Q = diag(lam_r)^1/2 Psi_r^T.
+
+Each rank appends its owned dofs q_k and w_k = W q_k (one mat-vec) to two on-disk arrays
+(np.memmap, one row per snapshot). G is summed over column chunks of the stored rows and
+all-reduced; V is formed chunk by chunk too. Peak memory per rank: O(K^2 + chunk K + n_local r)
+for any number of snapshots; disk: 2 n K doubles (deleted by :meth:`close`). Qh and lam are
+identical on every rank; V is returned as this rank's owned rows.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._dolfinx import MPI, dolfinx
+from ..errors import InputError
+from .lagrangian import _on_space
+
+
+class StreamingPOD:
+    """Out-of-core method-of-snapshots POD of the states of a dolfinx function space.
+
+    Args:
+        V: the FunctionSpace of the recorded states.
+        capacity: the most snapshots that will be appended (sizes the disk arrays).
+        weight: PETSc matrix W of the inner product (e.g. the mass matrix), or None for the
+            Euclidean one.
+        directory: where the per-rank arrays go (default: a fresh temporary directory).
+        chunk: number of state rows handled at once in :meth:`compute`.
+    """
+
+    def __init__(self, V, capacity: int, *, weight=None, directory=None, chunk: int = 65536):
+        if not isinstance(V, dolfinx.fem.FunctionSpace):
+            raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
+        for name, value, low in (("capacity", capacity, 2), ("chunk", chunk, 1)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
+        self.V, self.comm = V, V.mesh.comm
+        self.n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
+        self.capacity, self.chunk, self.weight = int(capacity), int(chunk), weight
+        base = tempfile.mkdtemp(prefix="lopinf_pod_", dir=directory)
+        self._dir = Path(base)
+        shape = (self.capacity, self.n_owned)
+        name = f"rank{self.comm.rank}"
+        self._Q = np.lib.format.open_memmap(self._dir / f"{name}_q.npy", mode="w+", dtype=float, shape=shape)
+        self._W = (np.lib.format.open_memmap(self._dir / f"{name}_wq.npy", mode="w+", dtype=float, shape=shape)
+                   if weight is not None else None)
+        self._x = weight.createVecRight() if weight is not None else None
+        self._y = weight.createVecLeft() if weight is not None else None
+        self.count = 0
+        self._eig = None
+
+    def append(self, q) -> None:
+        """Store one snapshot: a dolfinx Function on V or this rank's owned values."""
+        problem = None
+        if isinstance(q, dolfinx.fem.Function):
+            if not _on_space(q, self.V):
+                problem = "the snapshot is a Function on another mesh or function space than V"
+            q = q.x.array[: self.n_owned]
+        q = np.asarray(q, dtype=float)
+        if problem is not None:
+            pass
+        elif q.shape != (self.n_owned,):
+            problem = f"snapshot has shape {q.shape}; this rank owns {self.n_owned} dofs"
+        elif self.count >= self.capacity:
+            problem = f"StreamingPOD is full ({self.capacity} snapshots); raise capacity"
+        elif not np.all(np.isfinite(q)):
+            problem = f"snapshot {self.count} contains NaN or inf"
+        # collective verdict: a rank that refuses does not leave the others appending
+        if self.comm.allreduce(problem is not None, op=MPI.LOR):
+            raise InputError(problem or f"snapshot {self.count} was refused on another rank")
+        self._Q[self.count] = q
+        if self.weight is not None:
+            self._x.array[:] = q
+            self.weight.mult(self._x, self._y)
+            self._W[self.count] = self._y.array
+        self.count += 1
+
+    def gram(self) -> np.ndarray:
+        """G = Q^T W Q over the appended snapshots (collective; identical on every rank)."""
+        K = self.count
+        Q = self._Q[:K]
+        W = self._W[:K] if self._W is not None else Q
+        G = np.zeros((K, K))
+        for start in range(0, self.n_owned, self.chunk):
+            cols = slice(start, min(start + self.chunk, self.n_owned))
+            G += np.asarray(Q[:, cols]) @ np.asarray(W[:, cols]).T
+        G = self.comm.allreduce(G, op=MPI.SUM)
+        return 0.5 * (G + G.T)
+
+    def compute(self, r: int, *, rank_rtol: float = 1e-7):
+        """The rank-r POD (collective). Singular values sqrt(lam) below ``rank_rtol`` times the
+        largest count as zero: the Gram matrix resolves lam to ~1e-16 lam_max, so singular
+        values below ~1e-8 of the largest are not known.
+
+        Returns:
+            ``(basis_local, Qh, lam)``: this rank's owned rows of V (n_owned, r), the reduced
+            coordinates Qh = V^T W Q (r, K) and all eigenvalues of G (descending).
+        """
+        lam, Psi = self._eigen()
+        sv = np.sqrt(np.maximum(lam, 0.0))
+        rank = self.numerical_rank(rank_rtol)
+        if r > rank:
+            raise InputError(f"asked for r = {r} but the {self.count} snapshots have numerical rank "
+                             f"{rank} (singular values {sv[: r + 1]}); lower r or record richer data")
+        coef = Psi[:, :r] / np.sqrt(lam[:r])  # V = Q coef
+        Q = self._Q[: self.count]
+        basis = np.empty((self.n_owned, r))
+        for start in range(0, self.n_owned, self.chunk):
+            cols = slice(start, min(start + self.chunk, self.n_owned))
+            basis[cols] = np.asarray(Q[:, cols]).T @ coef
+        Qh = np.sqrt(lam[:r])[:, None] * Psi[:, :r].T
+        return basis, Qh, lam
+
+    def _eigen(self):
+        """Eigenpairs of G, descending, cached until the next append (collective)."""
+        if self.count < 2:
+            raise InputError(f"POD needs at least 2 snapshots, {self.count} appended")
+        if self._eig is None or self._eig[0] != self.count:
+            lam, Psi = np.linalg.eigh(self.gram())
+            order = np.argsort(lam)[::-1]
+            lam, Psi = lam[order], Psi[:, order]
+            # sign convention (so 1 and N ranks agree): the largest entry of each column is > 0
+            Psi *= np.sign(Psi[np.argmax(np.abs(Psi), axis=0), np.arange(Psi.shape[1])])
+            self._eig = (self.count, lam, Psi)
+        return self._eig[1], self._eig[2]
+
+    def numerical_rank(self, rank_rtol: float = 1e-7) -> int:
+        """Number of singular values sqrt(lam) above ``rank_rtol`` times the largest (collective)."""
+        sv = np.sqrt(np.maximum(self._eigen()[0], 0.0))
+        return int(np.sum(sv > rank_rtol * max(sv[0], np.finfo(float).tiny)))
+
+    def sink(self, *, every: int = 1, until_step: int | None = None):
+        """A sink of :func:`dolfinx_lopinf.fem.fom.run_loop` that appends the integrator's state
+        at every ``every``-th step up to ``until_step`` (step 0 included)."""
+        from .fom import Every
+
+        return Every(lambda s: self.append(s.q), every=every, until_step=until_step)
+
+    @property
+    def disk_bytes(self) -> int:
+        return (2 if self._W is not None else 1) * self.count * self.n_owned * 8
+
+    def close(self) -> None:
+        """Delete the on-disk arrays."""
+        self._Q = self._W = None
+        shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -1,0 +1,1 @@
+"""Off-screen renders and figures (pyvista, matplotlib: the ``viz`` extra)."""
