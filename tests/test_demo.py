@@ -140,4 +140,8 @@ def test_report_reads_the_shared_vocabulary(quick_demo, tmp_path):
     table = report.main([str(tmp_path)])
     assert any(line.startswith("| existing_code_cantilever | lopinf |") for line in table)
     assert any(line.startswith("| beam | lopinf (mass-orthonormal) |") for line in table)
+    # the ROM time of both loops: the default (compiled with numba) and the numpy reference
+    cells = [c.strip() for c in next(line for line in table
+                                     if line.startswith("| beam | lopinf (mass-orthonormal) |")).split("|")]
+    assert float(cells[6]) > 0 and cells[7].endswith("x"), cells
     assert (tmp_path / "report_beam.png").stat().st_size > 10_000

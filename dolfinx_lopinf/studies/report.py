@@ -18,7 +18,8 @@ import numpy as np
 
 
 def _rows(metrics: dict):
-    """(method label, r, test error, rom seconds, infer seconds) for every ROM row. Every demo
+    """(method label, r, test error, rom seconds, infer seconds, numpy-loop rom seconds or None,
+    backend) for every ROM row. Every demo
     writes the harness's vocabulary (:mod:`dolfinx_lopinf.studies.harness`): ``test_error`` of
     the scene's error kind, times as plain numbers."""
     out = []
@@ -27,7 +28,9 @@ def _rows(metrics: dict):
         if err is None or rom_s is None or not np.isfinite(err):
             continue
         label = row["method"] + (f" ({row['basis']})" if "basis" in row else "")
-        out.append((label, row["r"], float(err), float(rom_s), float(row.get("infer_seconds", 0.0))))
+        numpy_s = row.get("rom_seconds_numpy")
+        out.append((label, row["r"], float(err), float(rom_s), float(row.get("infer_seconds", 0.0)),
+                    None if numpy_s is None else float(numpy_s), row.get("rom_backend", "numpy")))
     return out
 
 
@@ -59,10 +62,14 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
     _finish(fig, ax, path, xlabel="wall time [s]", ylabel="relative test error",
             title=f"{metrics['scene']}: speed against {metrics.get('error', 'state')} error "
                   f"(n = {metrics.get('n_dofs')})")
-    lines = [f"| {metrics['scene']} | {label} | {best[1]} | {best[2]:.2e} | {best[3]:.3g} | "
-             f"{best[4]:.3g} | {fom if fom is None else f'{fom:.3g}'} |"
-             for label in labels
-             for best in [min((r for r in rows if r[0] == label), key=lambda r: r[2])]]
+    lines = []
+    for label in labels:
+        best = min((r for r in rows if r[0] == label), key=lambda r: r[2])
+        numpy_s = "-" if best[5] is None else f"{best[5]:.3g}"
+        speedup = "-" if not fom else f"{fom / best[3]:.3g}x"
+        lines.append(f"| {metrics['scene']} | {label} | {best[1]} | {best[2]:.2e} | {best[3]:.3g} "
+                     f"({best[6]}) | {numpy_s} | {speedup} | {best[4]:.3g} | "
+                     f"{fom if fom is None else f'{fom:.3g}'} |")
     return lines
 
 
@@ -74,8 +81,9 @@ def main(argv=None):
     files = sorted(root.glob("*/metrics.json"))
     if not files:
         raise SystemExit(f"no */metrics.json under {root}: run the demos first")
-    table = ["| scene | method | best r | test error | ROM s | inference s | FOM s |",
-             "|---|---|---|---|---|---|---|"]
+    table = ["| scene | method | best r | test error | ROM s (loop) | ROM s, numpy loop | "
+             "FOM / ROM | inference s | FOM s |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for f in files:
         metrics = json.loads(f.read_text())
         if not metrics.get("roms"):
