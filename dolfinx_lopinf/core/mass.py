@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
@@ -104,16 +105,37 @@ def infer_with_mass(Qh, dQh, ddQh, U=None, *, damping: bool = True, eps: float =
                                None if ops.B is None else ops.B / c, cert, M=sym(ops.M) / c)
 
 
-def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
-    """One Clarabel solve of the learned-mass problem in the given coordinates, K, C, B
-    re-solved exactly for its M, and the M = I candidate."""
-    from .inference import MechanicalOperators, _compress, _block_names
+@dataclass
+class _MassData:
+    """The checked data of one learned-mass fit, its block scaling and compressed form."""
 
-    try:
-        import cvxpy as cp
-    except ImportError as exc:  # pragma: no cover - cvxpy is a dependency
-        raise ImportError("mass='learned' needs cvxpy and clarabel: pip install cvxpy clarabel") from exc
-    t0 = time.perf_counter()
+    Qh: np.ndarray
+    dQh: np.ndarray | None
+    ddQh: np.ndarray
+    U: np.ndarray | None
+    blocks: list  # (name, data rows, scalar): K = k K', C = k C', B = -k (-B)'
+    L: np.ndarray  # the compressed, block-scaled data [ddQh; k Qh; k dQh; k U] (ridge included)
+    W: np.ndarray  # the normalisation weight, tr(M W) = 1
+    rank: int
+    cond: float
+
+    @property
+    def r(self):
+        return self.Qh.shape[0]
+
+    @property
+    def layout(self):
+        return [(name, data.shape[0]) for name, data, _ in self.blocks]
+
+    def floors(self, eps):
+        return {name: eps / k for name, _, k in self.blocks if name in ("K", "C")}
+
+
+def _mass_data(Qh, dQh, ddQh, U, damping, ridge, strict) -> _MassData:
+    """Check the data, scale the blocks to the size of D2 (O(1) unknowns for Clarabel) and
+    compress them; warn (or raise, strict) when the data leave operator entries undetermined."""
+    from .inference import _block_names, _compress
+
     Qh = check_matrix(Qh, "Qh")
     r, n_samples = Qh.shape
     ddQh = check_matrix(ddQh, "ddQh", rows=r, cols=n_samples)
@@ -127,8 +149,6 @@ def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
     if not np.any(ddQh):
         raise InputError("the second-derivative data ddQh are identically zero: static snapshots "
                          "carry no dynamics to fit; record a trajectory that moves")
-    # Block scalars give every block the size of D2 (the unknowns are then O(1) for Clarabel);
-    # K = kq K', C = k1 C', B = -ku (-B)'.
     size = _norm(ddQh)
     blocks = [("M", ddQh, 1.0), ("K", Qh, size / max(_norm(Qh), 1e-300))]
     if damping:
@@ -155,22 +175,28 @@ def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
             raise RankDeficientDataError(msg + "; lower r or record a richer trajectory")
         warn(msg + f"; they were fixed by the ridge {ridge:g} * sigma_1. Pass strict=True to "
              "raise instead.", IllConditionedDataWarning)
-    Ln = L / _norm(L)
     W = Qh @ Qh.T
     W = 0.5 * (W + W.T) / np.trace(W)
     W += 1e-12 * np.eye(r)  # positive definite for the certificate's generalised eigenproblem
+    return _MassData(Qh, dQh if damping else None, ddQh, U, blocks, L, W, rank, cond)
 
-    variables = {"M": cp.Variable((r, r), symmetric=True), "K": cp.Variable((r, r), symmetric=True)}
-    cons = [variables["M"] >> MASS_FLOOR * np.eye(r), cp.trace(variables["M"] @ W) == 1]
-    cons.append(variables["K"] >> (eps / blocks[1][2]) * np.eye(r))
-    if damping:
-        variables["C"] = cp.Variable((r, r), symmetric=True)
-        cons.append(variables["C"] >> (eps / blocks[2][2]) * np.eye(r))
-    if m:
-        variables["B"] = cp.Variable((r, m))
-    theta = cp.hstack([variables[name] for name, _, _ in blocks])
+
+def _solve_sdp(data: _MassData, eps):
+    """Clarabel on min tr(R^T M^-1 R), tr(M W) = 1, M >= floor, K, C >= eps (scaled units).
+    Returns (Theta, status, Z12: the dual of the Schur-complement constraint, or None)."""
+    try:
+        import cvxpy as cp
+    except ImportError as exc:  # pragma: no cover - the cvx extra
+        raise ImportError("mass='learned' needs cvxpy and clarabel: pip install cvxpy clarabel") from exc
+    r, floors = data.r, data.floors(eps)
+    variables = {name: cp.Variable((r, r), symmetric=True) if name != "B"
+                 else cp.Variable((r, d.shape[0])) for name, d, _ in data.blocks}
+    cons = [variables["M"] >> MASS_FLOOR * np.eye(r), cp.trace(variables["M"] @ data.W) == 1]
+    cons += [variables[name] >> floors[name] * np.eye(r) for name in floors]
+    theta = cp.hstack([variables[name] for name, _, _ in data.blocks])
     # matrix_frac(Theta Ln, M) written out as cvxpy canonicalises it, to read the dual of the
     # Schur-complement constraint: -Z12 is the Y of the certificate (:func:`_dual_bound`)
+    Ln = data.L / _norm(data.L)
     T = cp.Variable((Ln.shape[1], Ln.shape[1]), symmetric=True)
     schur = cp.bmat([[variables["M"], theta @ Ln], [(theta @ Ln).T, T]]) >> 0
     prob = cp.Problem(cp.Minimize(cp.trace(T)), cons + [schur])
@@ -180,69 +206,89 @@ def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
         raise SolverFailedError(f"Clarabel failed on the learned-mass L-OpInf problem: {exc}") from exc
     if prob.status not in ("optimal", "optimal_inaccurate"):
         raise SolverFailedError(f"Clarabel failed on the learned-mass L-OpInf problem: status {prob.status}")
-    sdp_seconds = time.perf_counter() - t0
-    sym = {name: 0.5 * (v.value + v.value.T) for name, v in variables.items() if name != "B"}
-    theta_sdp = np.hstack([sym[name] if name != "B" else variables["B"].value
-                           for name, _, _ in blocks])
-    M = sym["M"]
-
-    def misfit(theta):  # f in the scaled unknowns: ||M^-1/2 Theta L||^2
-        R = theta @ L
-        return float(np.sum(R * scipy.linalg.solve(theta[:, :r], R, assume_a="pos")))
-
-    # Candidates, judged by f itself: Clarabel's point, K, C, B re-solved exactly for its M,
-    # and the M = I fit (feasible: tr(W) = 1) - exact when the data's own mass is I, where
-    # the interior point method stops at ~1e-6 relative.
-    best, how, inner_cert = theta_sdp, "clarabel", None
-    for candidate_M, label in ((M, "clarabel+exact-inner"), (np.eye(r), "identity")):
-        polished = _polish(candidate_M, Qh, dQh if damping else None, ddQh, U, damping, eps,
-                           ridge, blocks)
-        if polished is not None and misfit(polished[0]) < misfit(best):
-            best, how, inner_cert = polished[0], label, polished[1]
-    stationarity = _mass_stationarity(best, L, W, r)
-    f_best = misfit(best)
-    floors = {"K": eps / blocks[1][2], "C": eps / blocks[2][2] if damping else 0.0}
+    values = {name: (0.5 * (v.value + v.value.T) if name != "B" else v.value)
+              for name, v in variables.items()}
     Z12 = None if schur.dual_value is None else np.asarray(schur.dual_value)[:r, r:]
-    layout = [(n, d.shape[0]) for n, d, _ in blocks]
+    return np.hstack([values[name] for name, _, _ in data.blocks]), prob.status, Z12
+
+
+def _misfit(theta, data: _MassData):
+    """f in the scaled unknowns: ||M^-1/2 Theta L||^2."""
+    R = theta @ data.L
+    return float(np.sum(R * scipy.linalg.solve(theta[:, :data.r], R, assume_a="pos")))
+
+
+def _best_candidate(theta_sdp, data: _MassData, eps, ridge):
+    """Candidates, judged by f itself: Clarabel's point, K, C, B re-solved exactly for its M,
+    and the M = I fit (feasible: tr(W) = 1) - exact when the data's own mass is I, where the
+    interior point method stops at ~1e-6 relative. Returns (Theta, label, inner certificate)."""
+    best, how, inner_cert = theta_sdp, "clarabel", None
+    for candidate_M, label in ((theta_sdp[:, :data.r], "clarabel+exact-inner"),
+                               (np.eye(data.r), "identity")):
+        polished = _polish(candidate_M, data.Qh, data.dQh, data.ddQh, data.U, data.dQh is not None,
+                           eps, ridge, data.blocks)
+        if polished is not None and _misfit(polished[0], data) < _misfit(best, data):
+            best, how, inner_cert = polished[0], label, polished[1]
+    return best, how, inner_cert
+
+
+def _certified_bound(Z12, data: _MassData, eps):
+    """(lower bound, dual infeasibility) from the SDP's dual; (-inf, inf) without one."""
     bound, dual_infeasibility = -np.inf, np.inf
     if Z12 is not None:  # cvxpy's sign convention for the dual: take the better of +-Y
-        for Y in (-Z12 * _norm(L), Z12 * _norm(L)):
-            b, infeasible = _dual_bound(Y, L, W, r, layout, floors)
+        for Y in (-Z12 * _norm(data.L), Z12 * _norm(data.L)):
+            b, infeasible = _dual_bound(Y, data.L, data.W, data.r, data.layout, data.floors(eps))
             if infeasible < 1e-6 and b > bound:
                 bound, dual_infeasibility = b, infeasible
-    ops = {}
-    start = 0
-    for name, data, k in blocks:
-        width = data.shape[0]
-        ops[name] = best[:, start:start + width] * (k if name != "M" else 1.0)
-        start += width
+    return bound, dual_infeasibility
+
+
+def _operators(theta, data: _MassData, eps):
+    """(M, K, C, B) in user units from the scaled unknowns, floored exactly."""
     from .inference import _floor
-    M = _floor(ops["M"], 0.0)
-    K = _floor(ops["K"], eps)
-    C = _floor(ops["C"], eps) if damping else None
-    B = -ops["B"] if m else None
-    R = M @ ddQh + K @ Qh + (C @ dQh if damping else 0.0) - (B @ U if m else 0.0)
+
+    ops, start = {}, 0
+    for name, rows, k in data.blocks:
+        ops[name] = theta[:, start:start + rows.shape[0]] * (k if name != "M" else 1.0)
+        start += rows.shape[0]
+    return (_floor(ops["M"], 0.0), _floor(ops["K"], eps),
+            _floor(ops["C"], eps) if "C" in ops else None, -ops["B"] if "B" in ops else None)
+
+
+def _fit_once(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict):
+    """One Clarabel solve of the learned-mass problem in the given coordinates, K, C, B
+    re-solved exactly for its M, the M = I candidate, and the certificate of the best."""
+    from .inference import MechanicalOperators
+
+    t0 = time.perf_counter()
+    data = _mass_data(Qh, dQh, ddQh, U, damping, ridge, strict)
+    theta_sdp, status, Z12 = _solve_sdp(data, eps)
+    sdp_seconds = time.perf_counter() - t0
+    best, how, inner_cert = _best_candidate(theta_sdp, data, eps, ridge)
+    f_best = _misfit(best, data)
+    bound, dual_infeasibility = _certified_bound(Z12, data, eps)
+    M, K, C, B = _operators(best, data, eps)
+    R = M @ data.ddQh + K @ data.Qh + (C @ data.dQh if C is not None else 0.0) \
+        - (B @ data.U if B is not None else 0.0)
     cert = {
-        "solver": how, "status": "optimal" if prob.status == "optimal" else "inaccurate",
-        "clarabel_status": prob.status, "mass": "learned",
-        "objective": f_best,
+        "solver": how, "status": "optimal" if status == "optimal" else "inaccurate",
+        "clarabel_status": status, "mass": "learned", "objective": f_best,
         # certified: f - (a lower bound) relative to f0 = ||L_M||^2, the misfit of Mh = I with
         # no forces (the data's own scale; f itself -> 0 on exact data)
-        "gap": (f_best - bound) / max(float(np.sum(L[:r] ** 2)), 1e-300),
+        "gap": (f_best - bound) / max(float(np.sum(data.L[:data.r] ** 2)), 1e-300),
         "dual_infeasibility": dual_infeasibility,
-        "mass_stationarity": stationarity,
+        "mass_stationarity": _mass_stationarity(best, data.L, data.W, data.r),
         "relative_residual": float(np.sqrt(np.sum(R * scipy.linalg.solve(M, R, assume_a="pos"))
-                                           / max(np.sum(ddQh * (M @ ddQh)), 1e-300))),
-        "normalisation": float(np.sum(M * W)),
-        "symmetry_error": 0.0, "data_rank": rank, "data_rows": p, "data_condition": cond,
+                                           / max(np.sum(data.ddQh * (M @ data.ddQh)), 1e-300))),
+        "normalisation": float(np.sum(M * data.W)), "symmetry_error": 0.0,
+        "data_rank": data.rank, "data_rows": data.L.shape[0], "data_condition": data.cond,
         "seconds": time.perf_counter() - t0, "sdp_seconds": sdp_seconds, "eps": eps,
     }
     if inner_cert is not None:
         cert["inner_status"] = inner_cert.get("status")
-    if prob.status != "optimal":
-        warnings.warn(f"learned-mass fit: Clarabel returned {prob.status} ({how}); check the "
-                      "model's held-back error",
-                      SolverWarning, stacklevel=3)
+    if status != "optimal":
+        warnings.warn(f"learned-mass fit: Clarabel returned {status} ({how}); check the "
+                      "model's held-back error", SolverWarning, stacklevel=3)
     return MechanicalOperators(K, C, B, cert, M=M)
 
 
