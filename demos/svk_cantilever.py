@@ -29,7 +29,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 import warnings
 from pathlib import Path
@@ -38,6 +37,8 @@ import numpy as np
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.core import polynomial as pl
+from dolfinx_lopinf.core.io_atomic import plain
+from dolfinx_lopinf.studies import harness
 from dolfinx_lopinf.viz import render
 from dolfinx_lopinf.fem._dolfinx import MPI
 from dolfinx_lopinf.fem.fom import output_matrix_in_state
@@ -232,7 +233,7 @@ def main(argv=None):
                 if "n_unknowns" in fits[method]:
                     cert["n_unknowns"] = fits[method]["n_unknowns"]
                 metrics["materials"].setdefault(material, {}).setdefault("fits", []).append(
-                    {"r": r, "method": method, **_jsonable(cert)})
+                    {"r": r, "method": method, **plain(cert)})
         mm = metrics["materials"][material]
         mm.update(n_dofs=int(len(cant.state_map.order)), rows=rows, long_runs=long_rows,
                   fom_seconds={str(a): s for a, s in fom_seconds.items()},
@@ -242,23 +243,9 @@ def main(argv=None):
         _print_table(material, rows, long_rows, cfg)
     metrics["linear_fom_seconds"] = lin_info["seconds"]
     metrics["seconds"] = time.perf_counter() - t_start
-    (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1))
+    harness.write_metrics(out, metrics)
     print(f"wrote {out / 'metrics.json'} ({metrics['seconds']:.0f} s)")
     return metrics
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return float(x) if np.isfinite(x) else str(float(x))
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    return x
 
 
 def _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long):

@@ -41,6 +41,7 @@ from . import ddt
 from .basis import Basis, pod
 from ..errors import InputError, LOpInfWarning
 from .inference import RIDGE, infer_mechanical, infer_output
+from .io_atomic import plain
 from .rom import LagrangianROM, Trajectory, load_rom, save_rom
 from .snapshots import Snapshots
 
@@ -133,7 +134,7 @@ class ReducedModel:
     def save(self, path):
         """One ``.npz`` (operators, basis, scheme, report); returns the path written."""
         meta = dict(self.rom.meta, fit_scheme=self.scheme, fit_dt=self.dt,
-                    fit_report=_jsonable(self.report))
+                    fit_report=plain(self.report))
         rom = LagrangianROM(K=self.rom.K, M=self.rom.M, C=self.rom.C, B=self.rom.B, E=self.rom.E,
                             meta=meta, scheme=self.rom.scheme, lagrangian=self.rom.lagrangian)
         return save_rom(path, rom, basis_rows=self.basis.V, rows=np.arange(self.basis.n))
@@ -147,18 +148,6 @@ class ReducedModel:
         basis = Basis(extras["basis_rows"], {}, {})
         return cls(rom, basis, rom.meta["fit_scheme"], float(rom.meta["fit_dt"]),
                    rom.meta.get("fit_report", {}))
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return x
 
 
 def _trajectories(snapshots) -> list[Snapshots]:

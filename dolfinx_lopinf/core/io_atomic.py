@@ -181,3 +181,18 @@ def open_npz(path, what: str):
 
     with data:
         yield data, read
+
+
+def plain(obj):
+    """``obj`` with numpy values made plain Python (dict keys as str, arrays and tuples as lists,
+    numpy scalars as bool/int/float), ready for ``json.dumps``. Non-finite floats stay floats
+    (``json`` writes them as NaN/Infinity, which Python reads back)."""
+    if isinstance(obj, dict):
+        return {str(k): plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.io_atomic import atomic_write_text
+from ..core.io_atomic import atomic_write_text, plain
 
 #: the error vocabulary: what ``train_error`` / ``test_error`` of a row measure
 ERRORS = {
@@ -103,29 +103,13 @@ def metrics(scene: str, *, error: str, quick: bool, roms: list | None, **fields)
     return out
 
 
-def _plain(obj):
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.floating):
-        return float(obj)
-    return obj
-
-
 def write_metrics(out, metrics: dict, name: str = "metrics.json") -> Path:
     """Write ``out/name`` atomically (rank 0 only; creates ``out``); numpy values become
     plain JSON numbers. Returns the path."""
     path = Path(out) / name
     if is_root():
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(path, json.dumps(_plain(metrics), indent=1))
+        atomic_write_text(path, json.dumps(plain(metrics), indent=1))
     return path
 
 
