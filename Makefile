@@ -55,8 +55,8 @@ test-fast: venv
 # The numerical core under a second rounding condition: every array entering the fits and the
 # POD perturbed at 1e-15 relative (seeded; tests/conftest.py) and two BLAS threads. A verdict
 # that changes here was decided by rounding.
-CORE_TESTS = tests/test_engine.py tests/test_numpy_core.py tests/test_rank.py tests/test_inputs_core.py \
-	tests/test_fit.py
+CORE_TESTS = tests/core/test_engine.py tests/core/test_numpy_core.py tests/core/test_rank.py \
+	tests/core/test_inputs_core.py tests/core/test_fit.py
 test-rounding: venv
 	LOPINF_TEST_PERTURB=1e-15 OPENBLAS_NUM_THREADS=2 OMP_NUM_THREADS=2 $(PY) -m pytest -q $(CORE_TESTS)
 

@@ -78,6 +78,34 @@ def _collect():
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
+@pytest.fixture(scope="session")
+def mpiexec():
+    """The venv's mpiexec (the mpich wheel installs it beside python), else the one on PATH;
+    the test is skipped without one."""
+    import shutil
+
+    exe = os.path.join(os.path.dirname(sys.executable), "mpiexec")
+    found = exe if os.path.exists(exe) else shutil.which("mpiexec")
+    if found is None:
+        pytest.skip("no mpiexec")
+    return found
+
+
+@pytest.fixture
+def serial_and_parallel(mpiexec, tmp_path):
+    """run(script) -> the npz files ``script OUT.npz`` wrote on 1 and on 2 ranks."""
+    import subprocess
+
+    def run(script):
+        serial, parallel = tmp_path / "serial.npz", tmp_path / "parallel.npz"
+        subprocess.run([sys.executable, str(script), str(serial)], check=True, timeout=300)
+        proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), str(parallel)],
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        return np.load(serial), np.load(parallel)
+    return run
+
+
 def load_demo(name):
     """The module demos/<name>.py (demos are scripts, not a package)."""
     spec = importlib.util.spec_from_file_location(f"demo_{name}", os.path.join(ROOT, "demos", f"{name}.py"))

@@ -1,6 +1,5 @@
 """FOM, recording and Galerkin projection under mpiexec -n 2 give the serial result."""
 
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,27 +12,9 @@ pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 SCRIPT = Path(__file__).with_name("mpi_beam.py")
 
 
-def _mpiexec():
-    exe = Path(sys.executable).with_name("mpiexec")
-    return str(exe) if exe.exists() else shutil.which("mpiexec")
-
-
-def _serial_and_parallel(script, tmp_path):
-    """Run ``script OUT.npz`` on 1 and on 2 ranks; return both npz files."""
-    mpiexec = _mpiexec()
-    if mpiexec is None:
-        pytest.skip("no mpiexec")
-    serial, parallel = tmp_path / "serial.npz", tmp_path / "parallel.npz"
-    subprocess.run([sys.executable, str(script), str(serial)], check=True, timeout=300)
-    proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), str(parallel)],
-                          capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return np.load(serial), np.load(parallel)
-
-
 @pytest.mark.mpi
-def test_beam_fom_two_ranks_equals_serial(tmp_path):
-    a, b = _serial_and_parallel(SCRIPT, tmp_path)
+def test_beam_fom_two_ranks_equals_serial(serial_and_parallel):
+    a, b = serial_and_parallel(SCRIPT)
     for key in ("Q", "V", "Y", "E", "M", "K"):  # FOM data and Galerkin sums: well conditioned
         scale = np.abs(a[key]).max()
         assert np.abs(a[key] - b[key]).max() <= 1e-10 * scale, key
@@ -45,9 +26,9 @@ def test_beam_fom_two_ranks_equals_serial(tmp_path):
 
 
 @pytest.mark.mpi
-def test_recorder_two_ranks_equals_serial(tmp_path):
+def test_recorder_two_ranks_equals_serial(serial_and_parallel):
     """A user's own dolfinx loop recorded on 1 and 2 ranks gives identical snapshot arrays."""
-    a, b = _serial_and_parallel(Path(__file__).with_name("mpi_recorder.py"), tmp_path)
+    a, b = serial_and_parallel(Path(__file__).with_name("mpi_recorder.py"))
     assert a["Q"].shape == (143, 40)
     for key in ("Q", "U", "Y", "t"):
         assert np.abs(a[key] - b[key]).max() <= 1e-12 * max(np.abs(a[key]).max(), 1.0), key
@@ -88,16 +69,13 @@ def _error_tolerance(row, singular_values, data_difference):
 
 @pytest.mark.mpi
 @pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code", "fishtail"])
-def test_quick_demos_two_ranks_equal_serial(demo, tmp_path, quick_demo):
+def test_quick_demos_two_ranks_equal_serial(demo, tmp_path, quick_demo, mpiexec):
     """Every demo runs under mpiexec -n 2 and reports the serial ROM errors, within what
     the rounding of its FOM data can move them (see ``_error_tolerance``). The serial run is
     the session's in-process quick run (``quick_demo``), shared with the demo's own tests."""
     import json
 
-    mpiexec = _mpiexec()
-    if mpiexec is None:
-        pytest.skip("no mpiexec")
-    script = Path(__file__).resolve().parents[1] / "demos" / f"{demo}.py"
+    script = Path(__file__).resolve().parents[2] / "demos" / f"{demo}.py"
     serial_out, serial = quick_demo(demo)
     out = tmp_path / "parallel"
     proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(script), "--quick", "--out", str(out)],

@@ -3,7 +3,6 @@
 the same on 1 and 2 ranks, and bad input refused before anything is written."""
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -171,18 +170,10 @@ def test_bad_state_for_function(recorded):
         states_to_function(dg, np.zeros(dg.dofmap.index_map.size_global))
 
 
-def _mpiexec():
-    exe = Path(sys.executable).with_name("mpiexec")
-    return str(exe) if exe.exists() else shutil.which("mpiexec")
-
-
 @pytest.mark.mpi
-def test_two_ranks_write_the_serial_values(tmp_path):
-    """tests/mpi_vtx.py on 1 and 2 ranks (states given on rank 0 only): the states put back
+def test_two_ranks_write_the_serial_values(tmp_path, mpiexec):
+    """tests/fem/mpi_vtx.py on 1 and 2 ranks (states given on rank 0 only): the states put back
     into the Function and the values in the written file equal the serial ones."""
-    mpiexec = _mpiexec()
-    if mpiexec is None:
-        pytest.skip("no mpiexec")
     script = Path(__file__).with_name("mpi_vtx.py")
     serial, parallel = tmp_path / "serial.npz", tmp_path / "parallel.npz"
     subprocess.run([sys.executable, str(script), str(serial)], check=True, timeout=300)

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 pytestmark = pytest.mark.slow
-sys.path.insert(0, str(Path(__file__).parents[1] / "demos"))
+sys.path.insert(0, str(Path(__file__).parents[2] / "demos"))
 
 
 def test_learned_mass_beats_identity_in_euclidean_bases(tmp_path):

@@ -6,8 +6,6 @@ import pytest
 
 pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
-from test_mpi import _serial_and_parallel  # noqa: E402
-
 SCRIPT = __import__("pathlib").Path(__file__).with_name("mpi_streaming.py")
 
 
@@ -17,8 +15,8 @@ def _align(A, B):
 
 
 @pytest.mark.mpi
-def test_streaming_pod_equals_dense_and_serial(tmp_path):
-    a, b = _serial_and_parallel(SCRIPT, tmp_path)
+def test_streaming_pod_equals_dense_and_serial(tmp_path, serial_and_parallel):
+    a, b = serial_and_parallel(SCRIPT)
     for run in (a, b):
         # mass-orthonormal basis, and the same subspace/coordinates as the dense reference
         assert np.abs(run["V"].T @ run["M"] @ run["V"] - np.eye(4)).max() < 1e-10

@@ -9,7 +9,7 @@ pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 
 def test_readme_example_runs(capsys):
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     code = re.search(r"```python\n(.*?)```", text, re.S).group(1)
     namespace = {}
     exec(compile(code, "README.md", "exec"), namespace)
@@ -27,7 +27,7 @@ def test_readme_own_code_path_runs(tmp_path, monkeypatch):
     import dolfinx_lopinf as lo
     from dolfinx_lopinf.scenes import cantilever
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     block = re.findall(r"```python\n(.*?)```", text, re.S)[1]
     lines = block.strip("\n").split("\n")
     assert lines[0].startswith("rec = lo.SnapshotRecorder(u,") and lines[1].startswith("for n in")

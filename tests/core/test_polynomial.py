@@ -13,7 +13,7 @@ import pytest
 from dolfinx_lopinf.core import polynomial as pl
 from dolfinx_lopinf.errors import InputError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _sos_potential(r, seed=0, floor=0.1):

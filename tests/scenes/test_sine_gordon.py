@@ -15,7 +15,7 @@ from dolfinx_lopinf.fem import nonlinear
 from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx  # noqa: E402
 from dolfinx_lopinf.scenes import sine_gordon as scene  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(sg, q0, v0, dt, t_end, every=None):
