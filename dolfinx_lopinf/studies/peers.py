@@ -96,6 +96,10 @@ def _opinf():
     except ImportError as exc:
         raise ImportError(f"the opinf peer baseline needs the optional package opinf: "
                           f"{INSTALL_HINT}") from exc
+    except ValueError as exc:  # h5py's "Not a datatype": see dolfinx_lopinf.fem._dolfinx
+        raise ImportError("opinf could not import h5py in this process (with numba installed, "
+                          "dolfinx.fem.petsc loads PETSc's HDF5 globally first): import "
+                          "dolfinx_lopinf (or h5py) before dolfinx.fem.petsc in your script") from exc
     major_minor = tuple(int(x) for x in opinf.__version__.split(".")[:2])
     if major_minor != (0, 6):
         raise ImportError(f"the opinf peer baseline is written for opinf 0.6.x, found "
