@@ -13,13 +13,25 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 
+class Point(NamedTuple):
+    """One ROM row of a scene, as the report plots and tabulates it."""
+
+    label: str
+    r: int
+    error: float
+    rom_seconds: float
+    infer_seconds: float
+    rom_seconds_numpy: float | None  # the same run on the numpy reference loop
+    backend: str  # the loop rom_seconds was measured with
+
+
 def _rows(metrics: dict):
-    """(method label, r, test error, rom seconds, infer seconds, numpy-loop rom seconds or None,
-    backend) for every ROM row. Every demo
+    """A :class:`Point` for every ROM row. Every demo
     writes the harness's vocabulary (:mod:`dolfinx_lopinf.studies.harness`): ``test_error`` of
     the scene's error kind, times as plain numbers."""
     out = []
@@ -29,8 +41,9 @@ def _rows(metrics: dict):
             continue
         label = row["method"] + (f" ({row['basis']})" if "basis" in row else "")
         numpy_s = row.get("rom_seconds_numpy")
-        out.append((label, row["r"], float(err), float(rom_s), float(row.get("infer_seconds", 0.0)),
-                    None if numpy_s is None else float(numpy_s), row.get("rom_backend", "numpy")))
+        out.append(Point(label, row["r"], float(err), float(rom_s),
+                         float(row.get("infer_seconds", 0.0)),
+                         None if numpy_s is None else float(numpy_s), row.get("rom_backend", "numpy")))
     return out
 
 
@@ -46,15 +59,15 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
     plt = _pyplot()
     rows = _rows(metrics)
     fig, ax = plt.subplots(figsize=(6.8, 4.6))
-    labels = sorted({r[0] for r in rows})
+    labels = sorted({p.label for p in rows})
     for i, label in enumerate(labels):
-        sel = sorted((r for r in rows if r[0] == label and r[2] <= 1.0), key=lambda r: r[1])
-        failed = sum(1 for r in rows if r[0] == label and r[2] > 1.0)
+        sel = sorted((p for p in rows if p.label == label and p.error <= 1.0), key=lambda p: p.r)
+        failed = sum(1 for p in rows if p.label == label and p.error > 1.0)
         note = f" ({failed} with error > 1 omitted)" if failed else ""
-        ax.loglog([r[3] for r in sel], [r[2] for r in sel], "o", color=f"C{i}", alpha=0.8,
+        ax.loglog([p.rom_seconds for p in sel], [p.error for p in sel], "o", color=f"C{i}", alpha=0.8,
                   label=f"{label}: ROM{note}")
-        if any(r[4] > 0 for r in sel):
-            ax.loglog([max(r[4], 1e-6) for r in sel], [r[2] for r in sel], "x", color=f"C{i}",
+        if any(p.infer_seconds > 0 for p in sel):
+            ax.loglog([max(p.infer_seconds, 1e-6) for p in sel], [p.error for p in sel], "x", color=f"C{i}",
                       label=f"{label}: inference")
     fom = _fom_seconds(metrics)
     if fom:
@@ -64,11 +77,12 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
                   f"(n = {metrics.get('n_dofs')})")
     lines = []
     for label in labels:
-        best = min((r for r in rows if r[0] == label), key=lambda r: r[2])
-        numpy_s = "-" if best[5] is None else f"{best[5]:.3g}"
-        speedup = "-" if not fom else f"{fom / best[3]:.3g}x"
-        lines.append(f"| {metrics['scene']} | {label} | {best[1]} | {best[2]:.2e} | {best[3]:.3g} "
-                     f"({best[6]}) | {numpy_s} | {speedup} | {best[4]:.3g} | "
+        best = min((p for p in rows if p.label == label), key=lambda p: p.error)
+        numpy_s = "-" if best.rom_seconds_numpy is None else f"{best.rom_seconds_numpy:.3g}"
+        speedup = "-" if not fom else f"{fom / best.rom_seconds:.3g}x"
+        lines.append(f"| {metrics['scene']} | {label} | {best.r} | {best.error:.2e} | "
+                     f"{best.rom_seconds:.3g} ({best.backend}) | {numpy_s} | {speedup} | "
+                     f"{best.infer_seconds:.3g} | "
                      f"{fom if fom is None else f'{fom:.3g}'} |")
     return lines
 

@@ -1,6 +1,7 @@
 """L-OpInf with a learned reduced mass (numpy only): a system whose mass is not I in the
 user's coordinates - what a Euclidean POD basis of a black box gives."""
 
+import types
 import warnings
 
 import numpy as np
@@ -109,10 +110,7 @@ def test_learned_mass_certificate_bounds_the_optimum():
     train = _run(M, K, C, B, _load)
     noisy = np.random.default_rng(5).standard_normal(train.Qh.shape) * 1e-4 * np.abs(train.Qh).max()
     for Qh, certified in ((train.Qh, False), (train.Qh + noisy, True)):
-        class _T:  # the _fit helper only reads .Qh
-            pass
-        tr = _T()
-        tr.Qh = Qh
+        tr = types.SimpleNamespace(Qh=Qh)  # the _fit helper only reads .Qh
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
             cert = _fit(tr, _load, mass="learned").certificate
