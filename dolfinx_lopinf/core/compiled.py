@@ -427,3 +427,180 @@ def is_sine(g, dg) -> bool:
         return False
     tol = 8 * np.finfo(float).eps
     return bool(np.all(np.abs(gz - np.sin(z)) <= tol) and np.all(np.abs(dz - np.cos(z)) <= tol))
+
+
+# --------------------------------------------------------------------------------------------
+# The polynomial Lagrangian ROM (dolfinx_lopinf.core.polynomial.PolynomialROM): its own kernel
+# registry, compiled after (and against) the helpers above.
+# --------------------------------------------------------------------------------------------
+
+def _poly_force(K, F2, F3, x, g, J, T2, T3):
+    """g = K x + F2(x, x) + F3(x, x, x), J = K + 2 F2(., x) + 3 F3(., x, x) for F2, F3
+    symmetric in their trailing indices; T2, T3 (r, r) work arrays."""
+    r = x.shape[0]
+    for i in range(r):
+        for j in range(r):
+            s2 = 0.0
+            s3 = 0.0
+            for k in range(r):
+                s2 += F2[i, j, k] * x[k]
+                t = 0.0
+                for m in range(r):
+                    t += F3[i, j, k, m] * x[m]
+                s3 += t * x[k]
+            T2[i, j] = s2
+            T3[i, j] = s3
+    for i in range(r):
+        acc = 0.0
+        for j in range(r):
+            acc += (K[i, j] + T2[i, j] + T3[i, j]) * x[j]
+            J[i, j] = K[i, j] + 2.0 * T2[i, j] + 3.0 * T3[i, j]
+        g[i] = acc
+
+
+def _poly_run(K, F2, F3, A0, Cm, BUT, q, p, dt, n_steps, avf, tol, max_iter, limit, Q, P,
+              stats):
+    """PolynomialROM.simulate's loop (same residual, Newton update and stopping test; see
+    there). stats: [0] steps done, [1] Newton iterations, [2] 1 when stable, 0 when Newton
+    failed or the state left ``limit``, -1 for an exactly singular Newton matrix."""
+    r = q.shape[0]
+    forced = BUT.shape[0] > 0
+    g = np.empty(r)
+    g2 = np.empty(r)
+    J = np.empty((r, r))
+    J2 = np.empty((r, r))
+    T2 = np.empty((r, r))
+    T3 = np.empty((r, r))
+    A = np.empty((r, r))
+    x = np.empty(r)
+    d = np.empty(r)
+    Ad = np.empty(r)
+    R = np.empty(r)
+    rhs = np.empty(r)
+    piv = np.empty(r, dtype=np.int64)
+    ga = 0.5 - 0.5 / np.sqrt(3.0)
+    gb = 0.5 + 0.5 / np.sqrt(3.0)
+    for a in range(r):
+        d[a] = dt * p[a]
+    iters = 0
+    for k in range(n_steps):
+        for a in range(r):
+            rhs[a] = p[a] + (0.5 * dt * BUT[k, a] if forced else 0.0)
+        ok = False
+        for _ in range(max_iter):
+            if avf:
+                for a in range(r):
+                    x[a] = q[a] + ga * d[a]
+                _poly_force(K, F2, F3, x, g, J, T2, T3)
+                for a in range(r):
+                    x[a] = q[a] + gb * d[a]
+                _poly_force(K, F2, F3, x, g2, J2, T2, T3)
+                for a in range(r):
+                    g[a] = 0.5 * (g[a] + g2[a])
+                    for b in range(r):
+                        J[a, b] = 0.5 * (ga * J[a, b] + gb * J2[a, b])
+            else:
+                for a in range(r):
+                    x[a] = q[a] + 0.5 * d[a]
+                _poly_force(K, F2, F3, x, g, J, T2, T3)
+                for a in range(r):
+                    for b in range(r):
+                        J[a, b] = 0.5 * J[a, b]
+            finite = True
+            mad = 0.0
+            mg = 0.0
+            mr = 0.0
+            for a in range(r):
+                acc = 0.0
+                for b in range(r):
+                    acc += A0[a, b] * d[b]
+                Ad[a] = acc
+                R[a] = acc + 0.5 * dt * g[a] - rhs[a]
+                if not np.isfinite(R[a]):
+                    finite = False
+                mad = max(mad, abs(acc))
+                mg = max(mg, abs(g[a]))
+                mr = max(mr, abs(rhs[a]))
+            if not finite:
+                break
+            size = mad + 0.5 * dt * mg + mr
+            rmax = 0.0
+            for a in range(r):
+                rmax = max(rmax, abs(R[a]))
+            if rmax <= tol * max(size, 1e-300):
+                ok = True
+                break
+            iters += 1
+            for a in range(r):
+                for b in range(r):
+                    A[a, b] = A0[a, b] + 0.5 * dt * J[a, b]
+            if not _lu_factor(A, piv):
+                stats[0] = k
+                stats[1] = iters
+                stats[2] = -1
+                return
+            _lu_solve(A, piv, R)
+            for a in range(r):
+                d[a] -= R[a]
+        bad = not ok
+        for a in range(r):
+            x[a] = q[a] + d[a]
+            if not np.isfinite(x[a]) or abs(x[a]) > limit:
+                bad = True
+        if bad:
+            stats[0] = k
+            stats[1] = iters
+            stats[2] = 0
+            return
+        for a in range(r):
+            acc = 0.0
+            for b in range(r):
+                acc += Cm[a, b] * d[b]
+            p[a] = d[a] / dt - 0.5 * acc - 0.5 * dt * g[a] + (0.5 * dt * BUT[k, a] if forced else 0.0)
+            q[a] = x[a]
+            Q[a, k + 1] = q[a]
+            P[a, k + 1] = p[a]
+    stats[0] = n_steps
+    stats[1] = iters
+    stats[2] = 1
+
+
+_POLY_SIGNATURES = {
+    "_poly_force": "void(float64[:, ::1], float64[:, :, ::1], float64[:, :, :, ::1], float64[::1], "
+                   "float64[::1], float64[:, ::1], float64[:, ::1], float64[:, ::1])",
+    "_poly_run": "void(float64[:, ::1], float64[:, :, ::1], float64[:, :, :, ::1], float64[:, ::1], "
+                 "float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], float64, int64, "
+                 "boolean, float64, int64, float64, float64[:, ::1], float64[:, ::1], int64[::1])",
+}
+_POLY_KERNELS: dict | None = None
+_POLY_COMPILE_SECONDS: float | None = None
+
+
+def polynomial_kernels() -> dict:
+    """The compiled polynomial-ROM kernels (after :func:`kernels`, whose LU they call);
+    compiled or loaded from numba's cache on the first call."""
+    global _POLY_KERNELS, _POLY_COMPILE_SECONDS
+    if _POLY_KERNELS is None:
+        kernels()
+        t0 = time.perf_counter()
+        g = globals()
+        out = {}
+        for name in ("_poly_force", "_poly_run"):
+            out[name] = jit(g[name], _POLY_SIGNATURES[name], fastmath={"contract"},
+                            error_model="numpy")
+            g[name] = out[name]
+        _POLY_KERNELS = out
+        _POLY_COMPILE_SECONDS = time.perf_counter() - t0
+    return _POLY_KERNELS
+
+
+def warm_up_polynomial() -> float | None:
+    """:func:`warm_up` for the polynomial ROM's kernels: seconds spent compiling or loading
+    them in this process (0.0 when already done), None when the JIT is unavailable."""
+    if not available():
+        return None
+    if _POLY_KERNELS is not None:
+        return 0.0
+    t0 = time.perf_counter()
+    polynomial_kernels()
+    return time.perf_counter() - t0

@@ -670,9 +670,27 @@ class RomTrajectory:
     seconds: float
     newton_iterations: int
     stable: bool
+    backend: str = "numpy"  # the loop that ran: "numpy" (reference) or "numba"
 
 
 _GAUSS = (0.5 - 0.5 / np.sqrt(3.0), 0.5 + 0.5 / np.sqrt(3.0))
+
+
+def polynomial_tensors(model):
+    """(K, F2, F3) with f(q) = K q + F2(q, q) + F3(q, q, q), F2 and F3 symmetric in their
+    trailing indices, for a :class:`PolynomialPotential` (F2 = 3 T3, F3 = 4 T4) or a
+    :class:`PolynomialForce`; None for any other model (the compiled loop needs them)."""
+    if isinstance(model, PolynomialPotential):
+        return model.K.copy(), 3.0 * model.T3, 4.0 * model.T4
+    if isinstance(model, PolynomialForce):
+        r = model.r
+        t1, t2, t3 = model.tuples
+        n1, n2 = len(t1), len(t2)
+        K = model.A[:, :n1]  # the degree-1 monomials are q_0 .. q_(r-1), in order
+        F2 = np.stack([_symmetric_tensor(model.A[i, n1:n1 + n2], t2, r) for i in range(r)])
+        F3 = np.stack([_symmetric_tensor(model.A[i, n1 + n2:], t3, r) for i in range(r)])
+        return np.ascontiguousarray(K), F2, F3
+    return None
 
 
 class PolynomialROM:
@@ -680,7 +698,8 @@ class PolynomialROM:
 
     Args:
         model: a :class:`PolynomialPotential` (f = grad U) or :class:`PolynomialForce`, or any
-            object with ``force_and_jacobian(q) -> (f, J)``.
+            object with ``r`` and ``force_and_jacobian(q) -> (f, J)`` (e.g. the FOM-assembled
+            Galerkin force of :mod:`dolfinx_lopinf.fem.galerkin_nonlinear`; numpy loop only).
         C: (r, r) damping or None.  B: (r, m) input matrix or None.
     """
 
@@ -697,6 +716,7 @@ class PolynomialROM:
                 raise InputError(f"{name} must be {shape}, got {A.shape}")
         if self.B is not None and (self.B.ndim != 2 or self.B.shape[0] != self.r):
             raise InputError(f"B must be (r = {self.r}, m), got {self.B.shape}")
+        self._tensors = None
 
     def energy(self, Q, P):
         if not hasattr(self.model, "value"):
@@ -704,7 +724,8 @@ class PolynomialROM:
         return 0.5 * np.sum(P * P, axis=0) + self.model.value(Q)
 
     def simulate(self, q0, v0, dt: float, n_steps: int, inputs_mid=None, *, scheme="midpoint",
-                 tol: float = 1e-13, max_iter: int = 50, blowup: float = 1e8) -> RomTrajectory:
+                 tol: float = 1e-13, max_iter: int = 50, blowup: float = 1e8,
+                 backend: str = "auto") -> RomTrajectory:
         """Integrate n_steps from (q0, v0); ``inputs_mid`` (m, n_steps): u(t_{k+1/2}).
 
         Each step solves, for d = q1 - q0 (reduced Newton until the residual is below ``tol``
@@ -714,9 +735,25 @@ class PolynomialROM:
         with g = f((q0+q1)/2) (midpoint) or the two-point Gauss average of f on [q0, q1] (AVF).
         A state beyond ``blowup`` x the initial scale, or Newton failure, stops the run
         (``stable=False``, the rest NaN).
+
+        ``backend``: ``"numpy"`` (the reference loop, any model), ``"numba"`` (the compiled loop
+        of :mod:`dolfinx_lopinf.core.compiled` for a :class:`PolynomialPotential` or
+        :class:`PolynomialForce`: same residual, Newton update and stopping test, trajectories
+        equal to rounding) or ``"auto"`` (numba when it imports, ``DOLFINX_LOPINF_JIT`` is not
+        0 and the model is polynomial; else numpy). Compilation happens before the timer.
         """
+        from . import compiled
+
         if scheme not in SCHEMES:
             raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            dt = float("nan")
+        if not (np.isfinite(dt) and dt > 0):
+            raise InputError(f"dt must be a positive finite number, got {dt!r}")
+        if isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 0:
+            raise InputError(f"n_steps must be a non-negative integer, got {n_steps!r}")
         r = self.r
         q = np.array(q0, dtype=float).reshape(r)
         p = np.array(v0, dtype=float).reshape(r)
@@ -728,14 +765,42 @@ class PolynomialROM:
                 raise InputError(f"inputs_mid must be (m = {self.B.shape[1]}, n_steps = {n_steps}), "
                                  f"got {U.shape}")
             BU = self.B @ U
+        requested = backend
+        backend = compiled.resolve_backend(backend)
+        if backend == "numba":
+            if self._tensors is None:
+                self._tensors = polynomial_tensors(self.model)
+            if self._tensors is None:
+                if requested == "numba":
+                    raise InputError("backend='numba' compiles the polynomial ROM for a "
+                                     "PolynomialPotential or PolynomialForce; this model is a "
+                                     f"{type(self.model).__name__} - pass backend='auto' or 'numpy'")
+                backend = "numpy"
+            else:
+                compiled.polynomial_kernels()  # compile / load from the cache outside the timer
         Qs = np.full((r, n_steps + 1), np.nan)
         Ps = np.full((r, n_steps + 1), np.nan)
         Qs[:, 0], Ps[:, 0] = q, p
         I = np.eye(r)
         Cm = np.zeros((r, r)) if self.C is None else self.C
         A0 = I / dt + 0.5 * Cm
-        fj = self.model.force_and_jacobian
         limit = blowup * max(np.abs(q).max(), np.abs(p).max() * dt, 1e-300) + blowup
+        if backend == "numba":
+            K, F2, F3 = self._tensors
+            BUT = np.ascontiguousarray(BU.T) if U is not None else np.empty((0, r))
+            stats = np.zeros(3, dtype=np.int64)
+            c = np.ascontiguousarray
+            t0 = time.perf_counter()
+            compiled.polynomial_kernels()["_poly_run"](
+                c(K), c(F2), c(F3), c(A0), c(Cm, dtype=float), BUT, q, p, dt, n_steps,
+                scheme == "avf", float(tol), int(max_iter), float(limit), Qs, Ps, stats)
+            seconds = time.perf_counter() - t0
+            if stats[2] < 0:
+                raise np.linalg.LinAlgError(f"Singular matrix (the reduced Newton matrix at step "
+                                            f"{int(stats[0]) + 1})")
+            return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, int(stats[1]),
+                                 bool(stats[2] == 1), backend)
+        fj = self.model.force_and_jacobian
         iters, stable = 0, True
         d = dt * p
         t0 = time.perf_counter()
@@ -769,4 +834,4 @@ class PolynomialROM:
             q = q1
             Qs[:, k + 1], Ps[:, k + 1] = q, p
         seconds = time.perf_counter() - t0
-        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable)
+        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable, backend)

@@ -180,3 +180,110 @@ def test_demo_quick(tmp_path):
             assert f["min_eig_gram"] >= 0 and f["duality_gap"] < 1e-6
     for name in ("tip_svk", "error_vs_r_svk", "energy_svk"):
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000
+
+
+# -- the compiled loop (numba) against the numpy reference ------------------------------------
+
+from dolfinx_lopinf.core import compiled  # noqa: E402
+
+needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed or JIT disabled")
+
+
+def _rel(a, b):
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(a)))
+
+
+@needs_numba
+@pytest.mark.parametrize("scheme", ["midpoint", "avf"])
+@pytest.mark.parametrize("kind", ["potential", "force"])
+@pytest.mark.parametrize("forced", [True, False])
+def test_compiled_loop_matches_numpy(scheme, kind, forced):
+    """Same trajectory to 1e-12 relative, same Newton iteration count, same energy."""
+    r, n, dt = 4, 1500, 0.01
+    rng = np.random.default_rng(11)
+    pot, _ = _sos_potential(r, seed=12)
+    if kind == "potential":
+        model = pot
+    else:  # the gradient of pot written as free force coefficients, plus a small non-gradient part
+        A = np.hstack([pot.K, np.zeros((r, len(pl.monomials(r, 2)) + len(pl.monomials(r, 3))))])
+        force = pl.PolynomialForce(A)
+        X = rng.standard_normal((r, 400))
+        A_fit = np.linalg.lstsq(force.features(X).T, pot.gradient(X).T, rcond=None)[0].T
+        model = pl.PolynomialForce(A_fit + 1e-3 * rng.standard_normal(A_fit.shape))
+    C, B = 0.03 * np.eye(r), rng.standard_normal((r, 2))
+    rom = pl.PolynomialROM(model, C, B if forced else None)
+    u = np.vstack([np.sin(1.1 * dt * (np.arange(n) + 0.5)), np.cos(0.4 * dt * np.arange(n))])
+    q0, v0 = 0.4 * rng.standard_normal(r), 0.1 * rng.standard_normal(r)
+    a = rom.simulate(q0, v0, dt, n, u if forced else None, scheme=scheme, backend="numpy")
+    b = rom.simulate(q0, v0, dt, n, u if forced else None, scheme=scheme, backend="numba")
+    assert (a.backend, b.backend) == ("numpy", "numba")
+    assert a.stable and b.stable
+    assert a.newton_iterations == b.newton_iterations
+    assert _rel(a.Qh, b.Qh) <= 1e-12 and _rel(a.P, b.P) <= 1e-12
+    if a.energy is not None:
+        assert _rel(a.energy, b.energy) <= 1e-12
+
+
+@needs_numba
+def test_compiled_loop_stops_where_numpy_stops():
+    """An unbounded-below potential: both loops flag the blow-up at the same step."""
+    r = 2
+    pot, _ = _sos_potential(r, seed=3)
+    bad = pl.PolynomialPotential(pot.K, pot.c3, -5.0 * np.abs(pot.c4))
+    rom = pl.PolynomialROM(bad)
+    a = rom.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, backend="numpy", blowup=1e3)
+    b = rom.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, backend="numba", blowup=1e3)
+    assert not a.stable and not b.stable
+    done = np.isfinite(a.Qh[0])
+    np.testing.assert_array_equal(done, np.isfinite(b.Qh[0]))
+    assert 1 < done.sum() < 400
+    assert _rel(a.Qh[:, done], b.Qh[:, done]) <= 1e-12
+
+
+def test_backend_choice_and_fallback(monkeypatch):
+    """auto runs numba for polynomial models when available; DOLFINX_LOPINF_JIT=0 (or a model
+    that is not a polynomial) falls back to numpy; an explicit numba request then is an error."""
+    pot, _ = _sos_potential(2)
+    rom = pl.PolynomialROM(pot)
+    args = (np.array([0.1, 0.2]), np.zeros(2), 0.05, 10)
+    expected = "numba" if compiled.available() else "numpy"
+    assert rom.simulate(*args).backend == expected
+
+    class Wrapped:  # a generic model: force_and_jacobian only
+        r = 2
+
+        def force_and_jacobian(self, q):
+            return pot.force_and_jacobian(q)
+
+    other = pl.PolynomialROM(Wrapped())
+    ref = rom.simulate(*args, backend="numpy")
+    tr = other.simulate(*args)
+    assert tr.backend == "numpy" and np.array_equal(tr.Qh, ref.Qh)
+    if compiled.available():
+        with pytest.raises(InputError, match="PolynomialPotential or PolynomialForce"):
+            other.simulate(*args, backend="numba")
+    monkeypatch.setenv(compiled.JIT_ENV, "0")
+    assert rom.simulate(*args).backend == "numpy"
+    with pytest.raises(InputError, match="JIT is disabled"):
+        rom.simulate(*args, backend="numba")
+    with pytest.raises(InputError, match="backend"):
+        rom.simulate(*args, backend="fortran")
+    with pytest.raises(InputError, match="n_steps"):
+        rom.simulate(np.zeros(2), np.zeros(2), 0.1, -3)
+    with pytest.raises(InputError, match="dt"):
+        rom.simulate(np.zeros(2), np.zeros(2), 0.0, 3)
+
+
+def test_polynomial_tensors_reproduce_the_force():
+    r = 3
+    rng = np.random.default_rng(13)
+    n = r + len(pl.monomials(r, 2)) + len(pl.monomials(r, 3))
+    for model in (_sos_potential(r, seed=14)[0], pl.PolynomialForce(rng.standard_normal((r, n)))):
+        K, F2, F3 = pl.polynomial_tensors(model)
+        x = rng.standard_normal(r)
+        g, J = model.force_and_jacobian(x)
+        assert np.allclose(g, K @ x + np.einsum("ijk,j,k->i", F2, x, x)
+                           + np.einsum("ijkl,j,k,l->i", F3, x, x, x), rtol=1e-13, atol=1e-13)
+        assert np.allclose(J, K + 2 * np.einsum("ijk,k->ij", F2, x)
+                           + 3 * np.einsum("ijkl,k,l->ij", F3, x, x), rtol=1e-13, atol=1e-13)
+    assert pl.polynomial_tensors(object()) is None
