@@ -9,7 +9,9 @@
    (small-strain) FOM at the largest amplitude shows what the nonlinearity does.
 2. Mass-orthonormal POD of the training snapshots (reduced mass exactly I; M is the one FOM
    operator the fit uses, as in the fishtail and beam demos).
-3. Four ROMs per r, all integrated by the midpoint VI with a reduced Newton step:
+3. Six ROMs per r, all integrated by the midpoint VI with a reduced Newton step
+   (:class:`PolynomialROM`; the polynomial ones by its compiled loop, numba, and again by its
+   numpy reference loop for the timing):
    * ``poly_lopinf``: U(q) = quadratic + cubic + quartic, C >= eps I, B - the gradient of one
      potential, fitted to the midpoint relation with U = m^T G m, G >= eps_g I (bounded below,
      coercive), Clarabel with its duality gap (:mod:`dolfinx_lopinf.core.polynomial`);
@@ -18,12 +20,18 @@
      sampled q (exact for SVK, whose reduced force is a cubic polynomial; for neo-Hookean the
      best quartic-potential fit of the Galerkin force over the sampled region), C = alpha I +
      beta K_h, B = V^T b;
+   * ``galerkin``: the genuine Galerkin ROM - the full-order internal force and tangent
+     V^T f(V q), V^T K_t(V q) V assembled by DOLFINx at every reduced Newton iterate
+     (:mod:`dolfinx_lopinf.fem.galerkin_nonlinear`; exact for any material);
+   * ``galerkin_ecsw``: the same with ECSW hyper-reduction: cell weights by NNLS on the
+     training states, the force summed over the sampled cells only;
    * ``opinf_poly``: unconstrained polynomial OpInf (free force coefficients up to cubic, free
      C and B): no potential.
 4. Scores: per unseen amplitude the state and tip errors over [0, t_end]; the energy of an
    undamped, unforced run 5x the training length from the last training state (the ROM's own
    energy and the FOM energy of the reconstruction, U_FOM(V q) = the intrusive potential on
-   SVK); fit times, certificates, ROM and FOM times.
+   SVK); fit times, certificates, ROM (compiled and numpy loop) and FOM times.
+5. Deformed FOM | ROM renders (true scale, side view) at the largest unseen amplitude.
 """
 
 from __future__ import annotations
@@ -36,8 +44,9 @@ from pathlib import Path
 import numpy as np
 
 import dolfinx_lopinf as lo
+from dolfinx_lopinf.core import compiled
 from dolfinx_lopinf.core import polynomial as pl
-from dolfinx_lopinf.core.io_atomic import plain
+from dolfinx_lopinf.fem import galerkin_nonlinear as gn
 from dolfinx_lopinf.studies import harness
 from dolfinx_lopinf.viz import render
 from dolfinx_lopinf.fem._dolfinx import MPI
@@ -47,12 +56,22 @@ from dolfinx_lopinf.scenes import svk_cantilever as scene
 
 FULL = dict(cells=(10, 1, 1), t_train=1.0, t_end=1.5, train_amps=[100.0, 250.0],
             test_amps=[50.0, 175.0, 350.0], r_values=[4, 6, 8], long_factor=5,
-            materials=["svk", "neo-hookean"])
+            materials=["svk", "neo-hookean"], ecsw_tol=1e-3, ecsw_states=150,
+            ecsw_sweep=[1e-1, 3e-2, 1e-2, 1e-3, 1e-4], render_times=[0.25, 0.5, 0.6, 0.75])
 QUICK = dict(cells=(6, 1, 1), t_train=0.8, t_end=1.0, train_amps=[100.0, 250.0],
-             test_amps=[350.0], r_values=[4, 6], long_factor=5, materials=["svk"])
-METHODS = ("poly_lopinf", "lopinf", "intrusive", "opinf_poly")
+             test_amps=[350.0], r_values=[4, 6], long_factor=5, materials=["svk"],
+             ecsw_tol=1e-3, ecsw_states=80, ecsw_sweep=[], render_times=[0.3, 0.55, 0.7])
+METHODS = ("poly_lopinf", "lopinf", "intrusive", "galerkin", "galerkin_ecsw", "opinf_poly")
 LABELS = {"poly_lopinf": "polynomial L-OpInf", "lopinf": "linear L-OpInf",
-          "intrusive": "intrusive Galerkin", "opinf_poly": "polynomial OpInf (no potential)"}
+          "intrusive": "intrusive Galerkin (polynomial tensors)",
+          "galerkin": "Galerkin (FOM force per iterate)", "galerkin_ecsw": "Galerkin + ECSW",
+          "opinf_poly": "polynomial OpInf (no potential)"}
+COLORS = {"poly_lopinf": "C0", "lopinf": "C3", "intrusive": "C2", "galerkin": "C4",
+          "galerkin_ecsw": "C5", "opinf_poly": "C1"}
+#: the FOM-assembled ROMs: numpy loop only (DOLFINx assembly per Newton iterate); their Newton
+#: tolerance sits above the rounding of the assembled force (sums over cells)
+ASSEMBLED = ("galerkin", "galerkin_ecsw")
+ASSEMBLED_TOL = 1e-9
 
 
 def half_step_inputs(amp, n_steps, dt):
@@ -78,16 +97,16 @@ def fom_runs(cfg, material):
     return cant, runs
 
 
-def intrusive_potential(cant, Vb, Qh_train, rng):
-    """Coefficients of the reduced potential from V^T F(V q) at sampled q (least squares over
-    the gradient monomials); exact when F is a cubic polynomial (SVK)."""
-    r = Vb.shape[1]
+def intrusive_potential(galerkin, Qh_train, rng):
+    """Coefficients of the reduced potential from the Galerkin force V^T F(V q) at sampled q
+    (least squares over the gradient monomials); exact when F is a cubic polynomial (SVK)."""
+    r = galerkin.r
     nu = pl.n_unknowns(r, 0, False)
     p = nu["K"] + nu["cubic"] + nu["quartic"]
     n_s = int(3 * p / r) + 20
     spread = Qh_train.std(axis=1) + 1e-3 * np.abs(Qh_train).max()
     X = spread[:, None] * rng.standard_normal((r, n_s)) * 1.5
-    F = Vb.T @ cant.internal_force(Vb @ X)  # (r, n_s)
+    F = galerkin.gradient(X)  # (r, n_s)
     scale = float(np.sqrt(np.mean(X**2)))
     Xs = X / scale
     blocks = [pl.monomial_gradients(Xs, pl.monomials(r, d)) for d in (2, 3, 4)]
@@ -100,6 +119,166 @@ def intrusive_potential(cant, Vb, Qh_train, rng):
     pot = pl.PolynomialPotential.from_coefficients(theta, r)
     misfit = np.linalg.norm(pot.gradient(X) - F) / np.linalg.norm(F)
     return pot, float(misfit)
+
+
+def _fit_models(cant, cfg, basis, runs, b_state, rng):
+    """The six ROMs at this basis: {method: (model, C, B)} and {method: fit info}."""
+    dt, r, Vb = scene.DT, basis.r, basis.V
+    alpha, beta = scene.RAYLEIGH
+    datas = []
+    for a in cfg["train_amps"]:
+        Qh = basis.project(runs[a][0].Q)
+        datas.append(pl.midpoint_data(Qh, dt, half_step_inputs(a, Qh.shape[1] - 1, dt)))
+    data = pl._concat(datas)
+    Qh_train = np.hstack([basis.project(runs[a][0].Q) for a in cfg["train_amps"]])
+    models, fits = {}, {}
+    # polynomial L-OpInf (SOS-bounded potential)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ops = pl.fit_polynomial(data, constraint="sos")
+    models["poly_lopinf"] = (ops.potential, ops.C, ops.B)
+    fits["poly_lopinf"] = ops.certificate
+    # linear L-OpInf on the same relation
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lops = lo.infer_mechanical(data.Qbar, data.D1, data.D2, data.Ubar)
+    lin_pot = pl.PolynomialPotential(lops.K, np.zeros(pl.n_unknowns(r)["cubic"]),
+                                     np.zeros(pl.n_unknowns(r)["quartic"]))
+    models["lopinf"] = (lin_pot, lops.C, lops.B)
+    fits["lopinf"] = {"seconds": time.perf_counter() - t0, "status": lops.certificate.get("status"),
+                      "duality_gap": lops.certificate.get("duality_gap")}
+    # the genuine Galerkin ROM (FOM assembly per iterate): C = alpha I + beta V^T K_0 V, B = V^T b
+    t0 = time.perf_counter()
+    galerkin = gn.GalerkinForce(cant.energy_form, cant.system.q, Vb, cant.state_map)
+    K0 = galerkin.force_and_jacobian(np.zeros(r))[1]
+    Cg, Bg = alpha * np.eye(r) + beta * K0, (Vb.T @ b_state)[:, None]
+    models["galerkin"] = (galerkin, Cg, Bg)
+    fits["galerkin"] = {"seconds": time.perf_counter() - t0, "cells": galerkin.n_cells_used}
+    # intrusive polynomial ROM: the reduced tensors of the Galerkin force (exact for SVK)
+    t0 = time.perf_counter()
+    ipot, imisfit = intrusive_potential(galerkin, Qh_train, rng)
+    models["intrusive"] = (ipot, alpha * np.eye(r) + beta * ipot.K, Bg)
+    fits["intrusive"] = {"seconds": time.perf_counter() - t0, "force_misfit": imisfit}
+    # ECSW: cells and weights fitting the Galerkin force on (subsampled) training states
+    t0 = time.perf_counter()
+    step = max(1, Qh_train.shape[1] // cfg["ecsw_states"])
+    sampling = gn.ecsw_sampling(cant.energy_form, cant.system.q, Vb, cant.state_map,
+                                Qh_train[:, ::step], tol=cfg["ecsw_tol"])
+    ecsw = gn.GalerkinForce(cant.energy_form, cant.system.q, Vb, cant.state_map, sampling=sampling)
+    models["galerkin_ecsw"] = (ecsw, Cg, Bg)
+    models["_ecsw_training"] = Qh_train[:, ::step]
+    fits["galerkin_ecsw"] = {"seconds": time.perf_counter() - t0, "cells": len(sampling.cells),
+                             "n_cells": sampling.n_cells, "ecsw_residual": sampling.residual,
+                             "ecsw_tol": cfg["ecsw_tol"], "training_states": Qh_train[:, ::step].shape[1]}
+    # unconstrained polynomial OpInf
+    force, Cf, Bf, fcert = pl.fit_force(data)
+    models["opinf_poly"] = (force, Cf, Bf)
+    fits["opinf_poly"] = fcert
+    print(f"  r = {r}: poly L-OpInf fit {ops.certificate['seconds']:.2f} s "
+          f"({ops.certificate['n_unknowns']['total']} unknowns, gap "
+          f"{ops.certificate['duality_gap']:.1e}, min eig G {ops.certificate['min_eig_gram']:.1e}), "
+          f"intrusive force misfit {imisfit:.1e}, ECSW {len(sampling.cells)} of "
+          f"{sampling.n_cells} cells (residual {sampling.residual:.1e})")
+    return models, fits, galerkin
+
+
+def _simulate(method, rom, *args, **kwargs):
+    """(trajectory of the default loop, seconds of the numpy loop): the polynomial models run
+    compiled (numba, when available) and again with the numpy reference loop; the assembled
+    Galerkin ROMs run the numpy loop (their force is a DOLFINx assembly)."""
+    if method in ASSEMBLED:
+        tr = rom.simulate(*args, tol=ASSEMBLED_TOL, backend="numpy", **kwargs)
+        return tr, tr.seconds
+    tr = rom.simulate(*args, **kwargs)
+    if tr.backend == "numpy":
+        return tr, tr.seconds
+    ref = rom.simulate(*args, backend="numpy", **kwargs)
+    if tr.stable and ref.stable:  # the two loops agree (same Newton iteration, same test)
+        assert np.abs(tr.Qh - ref.Qh).max() <= 1e-8 * max(np.abs(ref.Qh).max(), 1e-300), method
+    return tr, ref.seconds
+
+
+def _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds):
+    """ECSW cells, tip error and ROM time against the NNLS tolerance (largest unseen amplitude)."""
+    dt, r, a = scene.DT, basis.r, max(cfg["test_amps"])
+    n = int(round(cfg["t_end"] / dt))
+    _, Cg, Bg = models["galerkin"]
+    rows = []
+    for tol in cfg["ecsw_sweep"]:
+        s = gn.ecsw_sampling(cant.energy_form, cant.system.q, basis.V, cant.state_map,
+                             models["_ecsw_training"], tol=tol)
+        ecsw = gn.GalerkinForce(cant.energy_form, cant.system.q, basis.V, cant.state_map, sampling=s)
+        tr, _ = _simulate("galerkin_ecsw", pl.PolynomialROM(ecsw, Cg, Bg), np.zeros(r), np.zeros(r),
+                          dt, n, half_step_inputs(a, n, dt))
+        err = lo.relative_error(runs[a][0].Y, E_state @ basis.V @ tr.Qh) if tr.stable else float("inf")
+        rows.append({"material": material, "r": r, "amplitude": a, "tol": tol, "cells": len(s.cells),
+                     "n_cells": s.n_cells, "ecsw_residual": s.residual, "tip_error": err,
+                     "stable": bool(tr.stable), "rom_seconds": tr.seconds,
+                     "speedup": fom_seconds[a] / tr.seconds})
+        print(f"    ECSW tol {tol:g}: {len(s.cells)}/{s.n_cells} cells, tip error {err:.2e}, "
+              f"ROM {tr.seconds:.2f} s")
+    return rows
+
+
+def _test_rows(material, cfg, r, basis, models, fits, runs, E_state, fom_seconds):
+    dt = scene.DT
+    n_test_steps = int(round(cfg["t_end"] / dt))
+    rows, tips, states = [], {}, {}
+    for a in cfg["test_amps"]:
+        snaps = runs[a][0]
+        u_mid = half_step_inputs(a, n_test_steps, dt)
+        for method in METHODS:
+            model, C, B = models[method]
+            rom = pl.PolynomialROM(model, C, B)
+            tr, sec_np = _simulate(method, rom, np.zeros(r), np.zeros(r), dt, n_test_steps, u_mid)
+            Qrec = basis.V @ tr.Qh
+            Y = E_state @ Qrec
+            state_err = lo.relative_error(snaps.Q, Qrec) if tr.stable else float("inf")
+            tip_err = lo.relative_error(snaps.Y, Y) if tr.stable else float("inf")
+            rows.append({"material": material, "method": method, "r": r, "amplitude": a,
+                         "state_error": state_err, "tip_error": tip_err,
+                         "projection_error": basis.projection_error(snaps.Q),
+                         "stable": bool(tr.stable), "rom_seconds": tr.seconds,
+                         "rom_backend": tr.backend, "rom_seconds_numpy": sec_np,
+                         "fom_seconds": fom_seconds[a], "speedup": fom_seconds[a] / tr.seconds,
+                         "speedup_numpy": fom_seconds[a] / sec_np,
+                         "newton_iterations": tr.newton_iterations,
+                         "fit_seconds": fits[method].get("seconds"),
+                         "cells": fits[method].get("cells")})
+            if a == max(cfg["test_amps"]):
+                tips[method] = Y
+                states[method] = tr.Qh
+    return rows, tips, states
+
+
+def _long_rows(material, cfg, r, basis, models, galerkin, snaps_long):
+    """Undamped, unforced runs long_factor x the training length from the last training
+    state; the energy is scored by the FOM: 1/2 |p|^2 + U(V q) (assembled, any material)."""
+    dt = scene.DT
+    n_long = int(round(cfg["long_factor"] * cfg["t_train"] / dt))
+    Qh_l = basis.project(snaps_long.Q[:, -3:])
+    q0 = Qh_l[:, 1]
+    v0 = (Qh_l[:, 2] - Qh_l[:, 0]) / (2 * dt)
+    e0 = 0.5 * v0 @ v0 + galerkin.value(q0)
+    rows, series = [], {}
+    for method in METHODS:
+        model = models[method][0]
+        for scheme in (("midpoint", "avf") if method == "poly_lopinf" else ("midpoint",)):
+            tr, sec_np = _simulate(method, pl.PolynomialROM(model), q0, v0, dt, n_long, scheme=scheme)
+            row = {"material": material, "method": method, "r": r, "scheme": scheme,
+                   "t_long": n_long * dt, "stable": bool(tr.stable), "rom_seconds": tr.seconds,
+                   "rom_backend": tr.backend, "rom_seconds_numpy": sec_np}
+            if tr.energy is not None and tr.stable:
+                row["rom_energy_drift"] = float(np.abs(tr.energy - tr.energy[0]).max()
+                                                / abs(tr.energy[0]))
+            if tr.stable:
+                e_fom = 0.5 * np.sum(tr.P**2, axis=0) + galerkin.value(tr.Qh)
+                row["fom_energy_error"] = float(np.abs(e_fom - e0).max() / abs(e0))
+                if r == max(cfg["r_values"]) and scheme == "midpoint":
+                    series[method] = e_fom
+            rows.append(row)
+    return rows, series, n_long
 
 
 def main(argv=None):
@@ -115,9 +294,11 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     dt = scene.DT
     t_start = time.perf_counter()
+    jit_seconds = compiled.warm_up_polynomial()  # compile / load the ROM loop before any timer
     metrics = {"scene": "svk_cantilever", "dt": dt, "t_train": cfg["t_train"], "t_end": cfg["t_end"],
                "train_amplitudes": cfg["train_amps"], "test_amplitudes": cfg["test_amps"],
-               "r_values": cfg["r_values"], "quick": bool(args.quick), "materials": {}}
+               "r_values": cfg["r_values"], "quick": bool(args.quick), "materials": {},
+               "jit_compile_seconds": jit_seconds, "ecsw_tol": cfg["ecsw_tol"]}
 
     # --- the linear FOM at the largest amplitude: what the nonlinearity changes ----------------
     a_max = max(cfg["test_amps"])
@@ -137,109 +318,32 @@ def main(argv=None):
         b_state = cant.load_vector()
         Q_train = np.hstack([runs[a][0].Q for a in cfg["train_amps"]])
         basis_full = lo.pod(Q_train, max(cfg["r_values"]), weight=M)
-        alpha, beta = scene.RAYLEIGH
-        n_test_steps = int(round(cfg["t_end"] / dt))
-        # the long run: from the last training state of the largest training amplitude
         snaps_long = runs[max(cfg["train_amps"])][0]
-        n_long = int(round(cfg["long_factor"] * cfg["t_train"] / dt))
-        rows, long_rows, tip_series, energy_series = [], [], {}, {}
+        rows, long_rows, fits_out = [], [], []
         lin_nl = {"a": a_max, "y_linear": y_linear, "y_nonlinear": runs[a_max][0].Y}
         fom_seconds = {a: runs[a][1] for a in runs}
         rng = np.random.default_rng(17)
         for r in cfg["r_values"]:
             basis = basis_full.truncate(r)
-            Vb = basis.V
-            datas = []
-            for a in cfg["train_amps"]:
-                Qh = basis.project(runs[a][0].Q)
-                datas.append(pl.midpoint_data(Qh, dt, half_step_inputs(a, Qh.shape[1] - 1, dt)))
-            data = pl._concat(datas)
-            Qh_train = np.hstack([basis.project(runs[a][0].Q) for a in cfg["train_amps"]])
-            models, fits = {}, {}
-            # polynomial L-OpInf (SOS-bounded potential)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                ops = pl.fit_polynomial(data, constraint="sos")
-            models["poly_lopinf"] = (ops.potential, ops.C, ops.B)
-            fits["poly_lopinf"] = ops.certificate
-            # linear L-OpInf on the same relation
-            t0 = time.perf_counter()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                lops = lo.infer_mechanical(data.Qbar, data.D1, data.D2, data.Ubar)
-            lin_pot = pl.PolynomialPotential(lops.K, np.zeros(pl.n_unknowns(r)["cubic"]),
-                                             np.zeros(pl.n_unknowns(r)["quartic"]))
-            models["lopinf"] = (lin_pot, lops.C, lops.B)
-            fits["lopinf"] = {"seconds": time.perf_counter() - t0,
-                              "status": lops.certificate.get("status"),
-                              "duality_gap": lops.certificate.get("duality_gap")}
-            # intrusive Galerkin polynomial ROM
-            t0 = time.perf_counter()
-            ipot, imisfit = intrusive_potential(cant, Vb, Qh_train, rng)
-            Ch = alpha * np.eye(r) + beta * ipot.K
-            models["intrusive"] = (ipot, Ch, (Vb.T @ b_state)[:, None])
-            fits["intrusive"] = {"seconds": time.perf_counter() - t0, "force_misfit": imisfit}
-            # unconstrained polynomial OpInf
-            force, Cf, Bf, fcert = pl.fit_force(data)
-            models["opinf_poly"] = (force, Cf, Bf)
-            fits["opinf_poly"] = fcert
-            print(f"  r = {r}: poly L-OpInf fit {ops.certificate['seconds']:.2f} s "
-                  f"({ops.certificate['n_unknowns']['total']} unknowns, gap "
-                  f"{ops.certificate['duality_gap']:.1e}, min eig G {ops.certificate['min_eig_gram']:.1e}), "
-                  f"intrusive force misfit {imisfit:.1e}")
-            # --- unseen amplitudes -------------------------------------------------------------
-            for a in cfg["test_amps"]:
-                snaps = runs[a][0]
-                u_mid = half_step_inputs(a, n_test_steps, dt)
-                for method, (model, C, B) in models.items():
-                    rom = pl.PolynomialROM(model, C, B)
-                    tr = rom.simulate(np.zeros(r), np.zeros(r), dt, n_test_steps, u_mid)
-                    Qrec = Vb @ tr.Qh
-                    Y = E_state @ Qrec
-                    state_err = lo.relative_error(snaps.Q, Qrec) if tr.stable else float("inf")
-                    tip_err = lo.relative_error(snaps.Y, Y) if tr.stable else float("inf")
-                    rows.append({"material": material, "method": method, "r": r, "amplitude": a,
-                                 "state_error": state_err, "tip_error": tip_err,
-                                 "projection_error": basis.projection_error(snaps.Q),
-                                 "stable": bool(tr.stable), "rom_seconds": tr.seconds,
-                                 "fom_seconds": fom_seconds[a],
-                                 "newton_iterations": tr.newton_iterations,
-                                 "fit_seconds": fits[method].get("seconds")})
-                    if a == a_max and r == max(cfg["r_values"]):
-                        tip_series[method] = Y
-            # --- long undamped, unforced run: energy -------------------------------------------
-            Qh_l = basis.project(snaps_long.Q[:, -3:])
-            q0 = Qh_l[:, 1]
-            v0 = (Qh_l[:, 2] - Qh_l[:, 0]) / (2 * dt)
-            E_fom = lambda Q, P, ipot=ipot: 0.5 * np.sum(P * P, axis=0) + ipot.value(Q)  # noqa: E731
-            for method, (model, _, _) in models.items():
-                for scheme in (("midpoint", "avf") if method == "poly_lopinf" else ("midpoint",)):
-                    tr = pl.PolynomialROM(model).simulate(q0, v0, dt, n_long, scheme=scheme)
-                    e_fom = E_fom(tr.Qh, tr.P) if tr.stable else None
-                    row = {"material": material, "method": method, "r": r, "scheme": scheme,
-                           "t_long": n_long * dt, "stable": bool(tr.stable),
-                           "rom_seconds": tr.seconds}
-                    if tr.energy is not None and tr.stable:
-                        row["rom_energy_drift"] = float(np.abs(tr.energy - tr.energy[0]).max()
-                                                        / abs(tr.energy[0]))
-                    if e_fom is not None:
-                        e0 = float(E_fom(q0[:, None], v0[:, None])[0])
-                        row["fom_energy_error"] = float(np.abs(e_fom - e0).max() / abs(e0))
-                        if r == max(cfg["r_values"]) and scheme == "midpoint":
-                            energy_series[method] = e_fom
-                    long_rows.append(row)
+            models, fits, galerkin = _fit_models(cant, cfg, basis, runs, b_state, rng)
+            r_rows, tip_series, state_series = _test_rows(material, cfg, r, basis, models, fits,
+                                                          runs, E_state, fom_seconds)
+            rows += r_rows
+            l_rows, energy_series, n_long = _long_rows(material, cfg, r, basis, models, galerkin,
+                                                       snaps_long)
+            long_rows += l_rows
+            if r == max(cfg["r_values"]):
+                sweep_rows = _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds)
             for method in METHODS:
-                cert = {k: v for k, v in fits[method].items() if k != "n_unknowns"}
-                if "n_unknowns" in fits[method]:
-                    cert["n_unknowns"] = fits[method]["n_unknowns"]
-                metrics["materials"].setdefault(material, {}).setdefault("fits", []).append(
-                    {"r": r, "method": method, **plain(cert)})
-        mm = metrics["materials"][material]
-        mm.update(n_dofs=int(len(cant.state_map.order)), rows=rows, long_runs=long_rows,
+                fits_out.append({"r": r, "method": method, **fits[method]})
+        mm = metrics["materials"].setdefault(material, {})
+        mm.update(n_dofs=int(len(cant.state_map.order)), n_cells=int(np.prod(cfg["cells"])),
+                  rows=rows, long_runs=long_rows, fits=fits_out, ecsw_sweep=sweep_rows,
                   fom_seconds={str(a): s for a, s in fom_seconds.items()},
                   linear_vs_nonlinear_tip_difference=float(
                       lo.relative_error(lin_nl["y_nonlinear"], lin_nl["y_linear"])))
         _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long)
+        mm["render"] = _render(out, material, cfg, cant, runs[a_max][0], basis, state_series, rows)
         _print_table(material, rows, long_rows, cfg)
     metrics["linear_fom_seconds"] = lin_info["seconds"]
     metrics["seconds"] = time.perf_counter() - t_start
@@ -253,38 +357,131 @@ def _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_
     a = lin_nl["a"]
     t = dt * np.arange(lin_nl["y_nonlinear"].shape[1])
     series = {f"FOM ({material})": lin_nl["y_nonlinear"][1]}
-    series.update({f"{LABELS[m]} r={r_max}": y[1] for m, y in tip_series.items()
-                   if m != "opinf_poly" or np.all(np.isfinite(y))})
+    colors = ["k"]
+    for m in ("poly_lopinf", "lopinf", "galerkin_ecsw", "opinf_poly"):
+        y = tip_series.get(m)
+        if y is not None and np.all(np.isfinite(y)):
+            series[f"{LABELS[m]} r={r_max}"] = y[1]
+            colors.append(COLORS[m])
     series["linear FOM (small strain)"] = lin_nl["y_linear"][1]
+    colors.append("C7")
     render.curves(out / f"tip_{material}.png", t, series, ylabel="tip z-displacement [m]",
                   title=f"{material}: unseen amplitude a = {a:g} (trained at "
-                        f"{', '.join(f'{x:g}' for x in cfg['train_amps'])})",
-                  colors=["k", "C0", "C3", "C2", "C1", "C7"])
-    # error vs r (largest unseen amplitude)
-    rs = {}
-    for m in METHODS:
-        vals = [next(row["tip_error"] for row in rows if row["method"] == m and row["r"] == r
-                     and row["amplitude"] == a) for r in cfg["r_values"]]
-        rs[LABELS[m]] = np.array([v if np.isfinite(v) else np.nan for v in vals])
-    render.curves(out / f"error_vs_r_{material}.png", np.array(cfg["r_values"], float), rs,
-                  ylabel="relative tip error", logy=True, xlabel="r",
-                  title=f"{material}: tip error at a = {a:g} vs r", colors=["C0", "C3", "C2", "C1"])
+                        f"{', '.join(f'{x:g}' for x in cfg['train_amps'])})", colors=colors)
+    _error_vs_r(out / f"error_vs_r_{material}.png", rows, cfg, a,
+                title=f"{material}: tip error at the unseen a = {a:g} vs r")
     if energy_series:
         tl = dt * np.arange(n_long + 1)
-        e = {LABELS[m]: v for m, v in energy_series.items()}
-        render.curves(out / f"energy_{material}.png", tl, e, ylabel="FOM energy of V q [J]",
-                      title=f"{material}: undamped, unforced run 5x training, r = {r_max}",
-                      colors=["C0", "C3", "C2", "C1"])
+        e = {LABELS[m]: np.abs(v - v[0]) / abs(v[0]) for m, v in energy_series.items()}
+        render.curves(out / f"energy_{material}.png", tl, e, logy=True,
+                      ylabel="|E(t) - E(0)| / E(0),  E = FOM energy of V q",
+                      title=f"{material}: undamped, unforced, {cfg['long_factor']}x training, r = {r_max}",
+                      colors=[COLORS[m] for m in energy_series])
+
+
+def _error_vs_r(path, rows, cfg, a, *, title):
+    """Tip error vs r per method (markers; a failed run - blow-up or Newton failure - drawn
+    as an open marker on the top edge)."""
+    plt = render._pyplot()
+    fig, ax = plt.subplots(figsize=(7.0, 3.8))
+    rs = np.array(cfg["r_values"], float)
+    markers = dict(zip(METHODS, "osD^vx"))
+    finite = [row["tip_error"] for row in rows if np.isfinite(row["tip_error"])]
+    top = 3 * max(finite) if finite else 1.0
+    for k, m in enumerate(METHODS):
+        vals = np.array([next(row["tip_error"] for row in rows if row["method"] == m and row["r"] == r
+                              and row["amplitude"] == a) for r in cfg["r_values"]], float)
+        x = rs + 0.06 * (k - 2.5)  # a small offset: coinciding methods stay visible
+        ok = np.isfinite(vals)
+        ax.plot(x[ok], vals[ok], marker=markers[m], color=COLORS[m], lw=1, label=LABELS[m])
+        if np.any(~ok):
+            ax.plot(x[~ok], np.full((~ok).sum(), top), ls="none", marker=markers[m], mfc="none",
+                    color=COLORS[m], ms=8)
+    ax.set_yscale("log")
+    ax.set_xticks(rs)
+    ax.axhline(top, color="k", lw=0.6, ls=":")
+    ax.text(rs[0], top * 1.15, "failed (blow-up / Newton)", fontsize=7)
+    render._finish(fig, ax, path, xlabel="r", ylabel="relative tip error", title=title)
+
+
+def _render(out, material, cfg, cant, snaps, basis, state_series, rows):
+    """Deformed shapes, true scale, side view: FOM | ROMs at the largest unseen amplitude."""
+    import pyvista
+    from dolfinx import plot
+
+    dt, r = scene.DT, basis.r
+    a = max(cfg["test_amps"])
+    topology, cell_types, geometry = plot.vtk_mesh(cant.V)
+    grid = pyvista.UnstructuredGrid(topology, cell_types, geometry)
+
+    def field(state):  # state coordinates -> (points, 3); one rank: points = dof blocks
+        return cant.state_map.to_dofs(state).reshape(-1, 3)
+
+    steps = [int(round(t / dt)) for t in cfg["render_times"]]
+    columns = {"FOM": snaps.Q}
+    for m in ("galerkin_ecsw", "poly_lopinf", "lopinf"):
+        Qh = state_series.get(m)
+        if Qh is not None and np.all(np.isfinite(Qh[:, steps])):
+            columns[f"{LABELS[m]} r={r}"] = basis.V @ Qh[:, steps]
+    frames = []
+    for i, k in enumerate(steps):
+        frames.append({label: field(Q[:, k] if label == "FOM" else Q[:, i])
+                       for label, Q in columns.items()})
+    path = out / f"deformed_{material}.png"
+    _side_by_side(path, grid, frames, titles=[f"t = {k * dt:.2f} s" for k in steps],
+                  title=f"{material}, a = {a:g} (unseen), true scale")
+    errs = {}
+    for label, Q in columns.items():
+        if label != "FOM":
+            d = [np.linalg.norm(Q[:, i] - snaps.Q[:, k]) / np.linalg.norm(snaps.Q[:, k])
+                 for i, k in enumerate(steps)]
+            errs[label] = d
+    return {"png": path.name, "times": [k * dt for k in steps], "columns": list(columns),
+            "relative_state_error_per_time": errs}
+
+
+def _side_by_side(path, grid, frames, *, titles, title):
+    """One row per time, one column per label; side view (x right, z up), true scale."""
+    pv = render._pyvista()
+    labels = list(frames[0])
+    plotter = pv.Plotter(shape=(len(frames), len(labels)), off_screen=True,
+                         window_size=(440 * len(labels), 230 * len(frames)), border=False)
+    clim = (0.0, max(np.linalg.norm(u, axis=1).max() for f in frames for u in f.values()))
+    outline = grid.extract_surface(algorithm=None).extract_feature_edges()
+    for i, frame in enumerate(frames):
+        for j, label in enumerate(labels):
+            plotter.subplot(i, j)
+            g = grid.copy()
+            g.point_data["u"] = frame[label]
+            g.point_data["|u| [m]"] = np.linalg.norm(frame[label], axis=1)
+            plotter.add_mesh(outline, color="grey", line_width=1, opacity=0.6)  # undeformed
+            plotter.add_mesh(g.warp_by_vector("u", factor=1.0), scalars="|u| [m]", cmap="viridis",
+                             clim=clim, show_scalar_bar=(i == len(frames) - 1 and j == 0),
+                             scalar_bar_args={"title": "|u| [m]", "vertical": False,
+                                              "position_x": 0.25, "position_y": 0.05,
+                                              "width": 0.5, "height": 0.12, "fmt": "%.2f"})
+            plotter.add_text(f"{label}, {titles[i]}", font_size=8, position="upper_left")
+            if i == len(frames) - 1 and j == len(labels) - 1:
+                plotter.add_text(title, font_size=7, position="lower_right")
+            plotter.camera_position = [(0.5, -2.6, -0.15), (0.5, 0.0, -0.15), (0, 0, 1)]
+            plotter.camera.parallel_projection = True
+            plotter.camera.parallel_scale = 0.42
+    path = Path(path)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path
 
 
 def _print_table(material, rows, long_rows, cfg):
-    print(f"  tip error ({material}) per amplitude / r:")
+    print(f"  tip error ({material}) per amplitude / r   [ROM s compiled|numpy, FOM s]:")
     for m in METHODS:
         for r in cfg["r_values"]:
-            errs = [f"{row['tip_error']:.2e}" for row in rows if row["method"] == m and row["r"] == r]
-            print(f"    {m:12s} r={r}: " + "  ".join(errs))
+            sel = [row for row in rows if row["method"] == m and row["r"] == r]
+            errs = "  ".join(f"{row['tip_error']:.2e}" for row in sel)
+            print(f"    {m:14s} r={r}: {errs}   [{sel[-1]['rom_seconds']:.3f}|"
+                  f"{sel[-1]['rom_seconds_numpy']:.3f} s, FOM {sel[-1]['fom_seconds']:.1f} s]")
     for row in long_rows:
-        print(f"    long {row['method']:12s} r={row['r']} {row['scheme']:8s} stable={row['stable']} "
+        print(f"    long {row['method']:14s} r={row['r']} {row['scheme']:8s} stable={row['stable']} "
               f"rom drift {row.get('rom_energy_drift', float('nan')):.2e} "
               f"FOM energy err {row.get('fom_energy_error', float('nan')):.2e}")
 

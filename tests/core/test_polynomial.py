@@ -163,10 +163,21 @@ def test_demo_quick(tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     svk = m["materials"]["svk"]
     assert {row["method"] for row in svk["rows"]} == {"poly_lopinf", "lopinf", "intrusive",
-                                                      "opinf_poly"}
+                                                      "galerkin", "galerkin_ecsw", "opinf_poly"}
     for row in svk["rows"]:
-        for key in ("r", "amplitude", "state_error", "tip_error", "rom_seconds", "fom_seconds"):
+        for key in ("r", "amplitude", "state_error", "tip_error", "rom_seconds", "fom_seconds",
+                    "rom_seconds_numpy", "rom_backend", "speedup"):
             assert key in row
+    # the genuine Galerkin ROM (FOM force per Newton iterate) and its ECSW version match the
+    # polynomial-tensor ROM on SVK (exact), ECSW within its training tolerance
+    for r in m["r_values"]:
+        err = {row["method"]: row["tip_error"] for row in svk["rows"] if row["r"] == r}
+        assert abs(err["galerkin"] - err["intrusive"]) <= 1e-3 * err["intrusive"]
+        assert err["galerkin_ecsw"] <= 2 * err["galerkin"] + 1e-3
+    ecsw = [f for f in svk["fits"] if f["method"] == "galerkin_ecsw"]
+    assert all(1 <= f["cells"] <= f["n_cells"] and f["ecsw_residual"] <= m["ecsw_tol"] for f in ecsw)
+    assert all(e["fom_energy_error"] < 1e-2 for e in svk["long_runs"]
+               if e["method"] in ("galerkin", "galerkin_ecsw", "intrusive"))
     # the Galerkin polynomial ROM is exact for SVK: its reduced force is a cubic polynomial
     intrusive = [f for f in svk["fits"] if f["method"] == "intrusive"]
     assert all(f["force_misfit"] < 1e-10 for f in intrusive)
@@ -178,7 +189,7 @@ def test_demo_quick(tmp_path):
     for f in svk["fits"]:
         if f["method"] == "poly_lopinf":
             assert f["min_eig_gram"] >= 0 and f["duality_gap"] < 1e-6
-    for name in ("tip_svk", "error_vs_r_svk", "energy_svk"):
+    for name in ("tip_svk", "error_vs_r_svk", "energy_svk", "deformed_svk"):
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000
 
 
