@@ -33,11 +33,12 @@ class PSDBlocks(Strategy):
 
     def __init__(self, gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
                  max_iter: int = 5000, memory: int = 8, rho0: float = 0.3, method: str = "auto",
-                 ipm_max_iter: int = 40, eliminate: bool = True):
+                 ipm_max_iter: int = 40, eliminate: bool = True, backend: str = "auto"):
         if method not in ("auto", "admm"):
             raise ValueError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
                              f"not {method!r}")
         self.method, self.ipm_max_iter, self.eliminate = method, ipm_max_iter, eliminate
+        self.backend = backend  # the interior point's iteration: "numpy", "numba" or "auto"
         self.face_admm = FaceADMM(gap_tol, kkt_tol, admm_tol, max_iter, memory, rho0)
 
     def solve_blocks(self, problem: Problem):
@@ -50,7 +51,8 @@ class PSDBlocks(Strategy):
         if self.method == "auto" and problem.spd.ok:  # the certificate needs H > 0
             x_ip, ip, details = interior_point(problem, x, feasible, newton,
                                                gap_tol=self.face_admm.gap_tol,
-                                               max_iter=self.ipm_max_iter, eliminate=self.eliminate)
+                                               max_iter=self.ipm_max_iter, eliminate=self.eliminate,
+                                               backend=self.backend)
             if ip.converged:
                 return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
         return self.face_admm.run(problem, x, newton, details, t0)
@@ -74,14 +76,14 @@ class Auto(Strategy):
     shortcut: the ADMM strategies alone (the comparison path).
     """
 
-    def __init__(self, method: str = "auto"):
+    def __init__(self, method: str = "auto", backend: str = "auto"):
         if method not in ("auto", "admm"):
             raise ValueError(f"method must be 'auto' or 'admm', not {method!r}")
-        self.method = method
+        self.method, self.backend = method, backend
 
     def solve_blocks(self, problem: Problem):
         if problem.n_blocks > 1:
-            theta, cert = PSDBlocks(method=self.method).solve_blocks(problem)
+            theta, cert = PSDBlocks(method=self.method, backend=self.backend).solve_blocks(problem)
             if not cert.converged:
                 theta, cert = Barrier().solve_blocks(problem)
             return theta, cert

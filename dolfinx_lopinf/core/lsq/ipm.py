@@ -10,8 +10,19 @@ import time
 import numpy as np
 import scipy.linalg
 
+from .. import compiled as _jit
+from . import _compiled
 from .face import FaceNewton
-from .linalg import SPDSolver, cholesky_solve, from_eig, quadratic, sym, vech_index
+from .linalg import (
+    SPDSolver,
+    cholesky_solve,
+    from_eig,
+    lease,
+    quadratic,
+    release,
+    sym,
+    vech_index,
+)
 from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
 
 STEP_FRACTION = 0.98
@@ -30,6 +41,16 @@ def _hkm_index(r: int):
     for arr in out:
         arr.setflags(write=False)
     return out
+
+
+@functools.lru_cache(maxsize=32)
+def _kernel_index(r: int):
+    """The compiled kernel's tables: vech pairs (i, j), their weights c (1/2 on the
+    diagonal) and the vech position of every (i, j) of an r x r block."""
+    i, j = np.triu_indices(r)
+    full = np.zeros((r, r), dtype=np.int64)
+    full[i, j] = full[j, i] = np.arange(len(i))
+    return i.astype(np.int64), j.astype(np.int64), np.where(i == j, 0.5, 1.0), full  # private
 
 
 def _hkm_upper(Xi: np.ndarray, Lam: np.ndarray) -> np.ndarray:
@@ -74,13 +95,19 @@ class PrimalDualIPM:
     Lambda mapped back to the unscaled blocks) is a proof of the gap.
     """
 
-    def __init__(self, H, h, const, r, n_blocks, eps):
+    def __init__(self, H, h, const, r, n_blocks, eps, backend="auto"):
         self.ix = ix = vech_index(r, n_blocks)
         self.r, self.n_blocks, self.m = r, n_blocks, n_blocks * r
+        self.backend = _jit.resolve_backend(backend)
         self.x_eps = ix.x_eps(eps)
         dg = np.diag(H).reshape(n_blocks, ix.nv)[:, ix.iu[0] == ix.iu[1]]
         self.dsc = np.maximum(dg, 1e-300) ** -0.25
         self.T = (self.dsc[:, ix.iu[0]] * self.dsc[:, ix.iu[1]]).reshape(-1)
+        self.c0 = quadratic(H, h, const, self.x_eps)
+        if self.backend == "numba":  # 2 Hs is formed by run() (in leased space), 2 hs here
+            self.H = np.ascontiguousarray(H, dtype=float)
+            self.hs2 = 2.0 * self.T * (H @ self.x_eps + h)
+            return
         self.Hs = self.T[:, None] * H * self.T[None, :]
         self.hs = self.T * (H @ self.x_eps + h)
         self.H2 = 2.0 * self.Hs
@@ -88,23 +115,29 @@ class PrimalDualIPM:
         _, _, _, _, _, tp, tq = _hkm_index(r)
         self.diag_pos = [(k * ix.nv + tp) * ix.n + k * ix.nv + tq for k in range(n_blocks)]
         self.H2_diag = np.stack([self.H2.reshape(-1)[pos] for pos in self.diag_pos])  # gathered once
-        self.c0 = quadratic(H, h, const, self.x_eps)
 
     def f(self, v):
         """The objective in the scaled unknowns (const = ||Z||^2; a stopping guide only)."""
+        if self.backend == "numba":  # v^T Hs v + 2 hs^T v + c0, Hs = T H T
+            return float(v @ (self.T * (self.H @ (self.T * v))) + self.hs2 @ v + self.c0)
         return quadratic(self.Hs, self.hs, self.c0, v)
 
-    def run(self, x_start, *, certify, gap_tol, max_iter=40, watch=None):
+    def run(self, x_start, *, certify, gap_tol, max_iter=40, watch=None, watch_below=np.inf):
         """Iterate from ``x_start`` until the certified relative gap is <= ``gap_tol``.
-        ``watch(x, m mu / f)``, if given, is called after every iteration and ends the loop
-        when it returns False. Returns ``(x, Certificate)``; its ``face_ranks`` is the rank of
-        each X_k and ``details`` holds ``trace`` ((step, sigma, m mu / f) per iteration),
-        ``mu`` and why it ``stopped`` short."""
+        ``watch(x, m mu / f)``, if given, is called after every iteration with
+        m mu / f <= ``watch_below`` (it must answer True above it) and ends the loop when it
+        returns False. Returns ``(x, Certificate)``; its ``face_ranks`` is the rank of each
+        X_k and ``details`` holds ``trace`` ((step, sigma, m mu / f) per iteration), ``mu``
+        and why it ``stopped`` short."""
         ix, m = self.ix, self.m
         x, X, Lam = self._start(x_start)
         mu = float(np.sum(X * Lam)) / m
-        cert = Certificate("ipm", False, 0, duality_gap=np.inf, face_multiplier_min=-np.inf)
-        for it in range(1, max_iter + 1):
+        cert = Certificate("ipm", False, 0, duality_gap=np.inf, face_multiplier_min=-np.inf,
+                           details={"backend": self.backend})
+        if self.backend == "numba":
+            x, X, Lam, mu = self._run_compiled(cert, x, Lam, certify, gap_tol, max_iter, watch,
+                                               watch_below)
+        for it in range(1, max_iter + 1) if self.backend == "numpy" else ():
             cert.iterations = it
             try:
                 dx, dL, a, sigma = self._step(x, X, Lam, it)
@@ -116,7 +149,8 @@ class PrimalDualIPM:
             mu = float(np.sum(X * Lam)) / m
             f_ref = max(abs(self.f(x)), 1e-300)
             cert.details.setdefault("trace", []).append((a, sigma, m * mu / f_ref))
-            if watch is not None and not watch(self.x_eps + self.T * x, m * mu / f_ref):
+            if (watch is not None and m * mu / f_ref <= watch_below
+                    and not watch(self.x_eps + self.T * x, m * mu / f_ref)):
                 cert.details["stopped"] = "stopped by watch"
                 break
             if (m * mu <= gap_tol * f_ref or a < 1e-3) and self._certified(cert, certify, x, Lam,
@@ -130,6 +164,52 @@ class PrimalDualIPM:
         cert.details["mu"] = mu
         cert.face_ranks = [int(v) for v in (wX > wL).sum(axis=1)]
         return self.x_eps + self.T * x, cert
+
+    def _run_compiled(self, cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below):
+        """The loop of :meth:`run` by the compiled kernel (:mod:`._compiled`): it iterates
+        until the loop needs Python (certify, watch, stop); the same tests, in the same order.
+        Returns the final (x, X, Lambda, mu)."""
+        kernels, ix = _compiled.kernels(), self.ix
+        M0, Mw = lease((ix.n, ix.n)), lease((ix.n, ix.n))  # 2 Hs, the Schur matrix
+        try:
+            kernels["_setup"](self.H, self.T, M0)
+            return self._loop(kernels["_iterate"], M0, Mw, cert, x, Lam, certify, gap_tol,
+                              max_iter, watch, watch_below)
+        finally:
+            release(M0, Mw)
+
+    def _loop(self, K, M0, Mw, cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below):
+        st, ix, m = _compiled, self.ix, self.m
+        iu0, iu1, cw, full = _kernel_index(self.r)
+        x, Lam = np.array(x, dtype=float), np.ascontiguousarray(Lam, dtype=float)
+        trace, info = np.zeros((max_iter, 3)), np.zeros(5)
+        watch_below = watch_below if watch is not None else -1.0
+        it = 1
+        while it <= max_iter:
+            status = K(M0, self.hs2, self.c0, ix.Dw[:ix.nv], iu0, iu1, cw, full, x, Lam, Mw, it,
+                       max_iter, gap_tol, watch_below, trace, info)
+            it = cert.iterations = int(info[0])
+            if status & (st.X_NOT_PD | st.SCHUR_NOT_PD | st.NOT_FINITE):
+                cert.details["stopped"] = (
+                    f"iterate not positive definite at iteration {it}" if status & st.X_NOT_PD
+                    else f"Schur matrix not positive definite at iteration {it}, mu "
+                         f"{info[1]:.1e}, f {info[2]:.3e}" if status & st.SCHUR_NOT_PD
+                    else f"direction not finite at iteration {it}")
+                it -= 1  # the trace holds the iterations completed
+                break
+            mu, f_ref, a = info[1], info[2], info[3]
+            if status & st.WATCH and not watch(self.x_eps + self.T * x, m * mu / f_ref):
+                cert.details["stopped"] = "stopped by watch"
+                break
+            if status & st.CERTIFY and self._certified(cert, certify, x, Lam, gap_tol, a):
+                break
+            if status & st.MAX_ITER:
+                break
+            it += 1
+        if it >= 1:
+            cert.details["trace"] = [tuple(float(v) for v in row) for row in trace[:min(it, max_iter)]]
+        X = ix.blocks(x)
+        return x, X, Lam, float(np.sum(X * Lam)) / m
 
     def _start(self, x_start):
         """Scaled x_start with its eigenvalues made positive, and Lambda = c X^-1."""
@@ -251,14 +331,14 @@ class _ActiveBlocks:
         """Once near the optimum, the eliminated blocks must be >= eps I."""
         return rel_gap > 1e-3 or self.eliminated_ok(self.full(xa))
 
-    def run(self, x, gap_tol, max_iter):
+    def run(self, x, gap_tol, max_iter, backend="auto"):
         """``(full x, Certificate)`` of a converged reduced run, or None."""
         if not self.ok:
             return None
         p, active = self.problem, int((~self.feasible).sum())
-        ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps)
+        ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps, backend)
         xa, cert = ipm.run(x[self.a_idx], certify=self.certify, gap_tol=gap_tol,
-                           max_iter=max_iter, watch=self.watch)
+                           max_iter=max_iter, watch=self.watch, watch_below=1e-3)
         if not cert.converged:
             return None
         ranks = np.full(p.n_blocks, p.r)
@@ -269,20 +349,21 @@ class _ActiveBlocks:
 
 
 def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_iter=40,
-                   eliminate=True):
+                   eliminate=True, backend="auto"):
     """The interior point from the symmetric minimiser ``x`` (``feasible``: its blocks that
     are >= eps I): first on the active blocks only (``eliminate``, if some block is
     feasible), else on all; if it stops uncertified, Newton on the face it shows
-    (``newton``: a :class:`FaceNewton`). Needs H > 0.
+    (``newton``: a :class:`FaceNewton`). Needs H > 0. ``backend``: the iteration in numpy or
+    compiled (:class:`PrimalDualIPM`; ``"auto"``: compiled when numba is there).
     Returns ``(x, Certificate, details)``."""
     H, h = problem.normal_equations
     details, result = {}, None
     if eliminate and feasible.any():
-        result = _ActiveBlocks(problem, feasible).run(x, gap_tol, max_iter)
+        result = _ActiveBlocks(problem, feasible).run(x, gap_tol, max_iter, backend)
         details["eliminated_blocks_tried"] = [int(k) for k in np.flatnonzero(feasible)]
     if result is None:
         ipm = PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), problem.r, problem.n_blocks,
-                            problem.eps)
+                            problem.eps, backend)
         result = ipm.run(x, certify=problem.dual_gap, gap_tol=gap_tol, max_iter=max_iter)
     x_ip, cert = result
     if not cert.converged:
@@ -310,8 +391,10 @@ class InteriorPoint(Strategy):
     """Symmetric blocks >= eps I by the primal-dual interior point (:func:`interior_point`,
     crossover included) alone, without the ADMM fallback of :class:`PSDBlocks`."""
 
-    def __init__(self, gap_tol: float = 1e-8, max_iter: int = 40, eliminate: bool = True):
+    def __init__(self, gap_tol: float = 1e-8, max_iter: int = 40, eliminate: bool = True,
+                 backend: str = "auto"):
         self.gap_tol, self.max_iter, self.eliminate = gap_tol, max_iter, eliminate
+        self.backend = backend
 
     def solve_blocks(self, problem: Problem):
         t0 = time.perf_counter()
@@ -322,7 +405,8 @@ class InteriorPoint(Strategy):
             raise ValueError("the interior point's certificate needs a nonsingular H")
         newton = FaceNewton(problem, self.gap_tol)
         x_ip, ip, details = interior_point(problem, x, feasible, newton, gap_tol=self.gap_tol,
-                                           max_iter=self.max_iter, eliminate=self.eliminate)
+                                           max_iter=self.max_iter, eliminate=self.eliminate,
+                                           backend=self.backend)
         return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
 
 

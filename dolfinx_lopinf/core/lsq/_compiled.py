@@ -1,0 +1,492 @@
+"""The interior point iteration of :class:`~dolfinx_lopinf.core.lsq.ipm.PrimalDualIPM` compiled
+(numba, optional; ``pip install '.[fast]'``).
+
+One call runs whole iterations - the Cholesky factors and inverses of the blocks X_k and
+Lambda_k, the HKM terms written straight into the Schur matrix, its Cholesky (LAPACK
+``dpotrf``), the predictor and corrector directions (two BLAS ``dtrsv`` each), the step
+lengths (``eigvalsh``) and the update - and returns to Python only when the loop needs it:
+to certify (the same test as the numpy loop), to ask ``watch``, or to stop. The arithmetic
+is the numpy path's, step by step, so the iterates agree to rounding (tests: objectives to
+1e-10, the same iteration counts); the numpy path stays the reference and the fallback
+(``backend="numpy"``, or ``DOLFINX_LOPINF_JIT=0``).
+
+LAPACK and BLAS are scipy's (``scipy.linalg.cython_lapack``/``cython_blas``, the library
+the numpy path calls): their addresses are registered with LLVM under fixed symbol names
+when this module is imported, and the kernels call those names, so numba can cache the
+compiled code (the addresses change from process to process, the names do not). The
+kernels compile on first use with ``cache=True`` (:func:`warm_up` does it ahead of any
+timer and returns the seconds it took); later processes load them from numba's cache.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .. import compiled as _jit
+
+# status bits returned by the kernel
+WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE = 1, 2, 4, 8, 16, 32
+STEP_FRACTION = 0.98  # the numpy path's (ipm.STEP_FRACTION)
+
+_KERNELS: dict | None = None
+_COMPILE_SECONDS: float | None = None
+_dpotrf = _dtrsv = None  # bound to LAPACK dpotrf and BLAS dtrsv by kernels()
+
+
+def available() -> bool:
+    """Whether the compiled iteration can run (numba imports, ``DOLFINX_LOPINF_JIT`` not 0)."""
+    return _jit.available()
+
+
+def _externals():
+    """LAPACK dpotrf and BLAS dtrsv of scipy as numba external functions (symbols registered
+    with LLVM once per process)."""
+    import llvmlite.binding as llb
+    from numba import types
+    from numba.extending import get_cython_function_address
+
+    out = {}
+    for lib, name, nargs in (("scipy.linalg.cython_lapack", "dpotrf", 5),
+                             ("scipy.linalg.cython_blas", "dtrsv", 8)):
+        symbol = f"dolfinx_lopinf_{name}"
+        llb.add_symbol(symbol, get_cython_function_address(lib, name))
+        out[name] = types.ExternalFunction(symbol, types.void(*(types.voidptr,) * nargs))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Kernel source (plain Python; compiled by kernels(), which binds _dpotrf/_dtrsv first)
+# --------------------------------------------------------------------------------------------
+
+def _chol_inv(A, S, Lw):
+    """S = R^-1 for the lower Cholesky factor R of the r x r block A (read: its lower
+    triangle); False (S undefined) when A is not positive definite, as LAPACK decides it."""
+    r = A.shape[0]
+    for j in range(r):
+        s = A[j, j]
+        for k in range(j):
+            s -= Lw[j, k] * Lw[j, k]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        Lw[j, j] = d
+        for i in range(j + 1, r):
+            t = A[i, j]
+            for k in range(j):
+                t -= Lw[i, k] * Lw[j, k]
+            Lw[i, j] = t / d
+    for j in range(r):  # S = R^-1, lower, column by column
+        for i in range(r):
+            S[i, j] = 0.0
+        S[j, j] = 1.0 / Lw[j, j]
+        for i in range(j + 1, r):
+            t = 0.0
+            for k in range(j, i):
+                t += Lw[i, k] * S[k, j]
+            S[i, j] = -t / Lw[i, i]
+    return True
+
+
+def _matmul(A, B, C):
+    """C = A @ B (r x r)."""
+    r = A.shape[0]
+    for i in range(r):
+        for j in range(r):
+            C[i, j] = 0.0
+        for k in range(r):
+            a = A[i, k]
+            for j in range(r):
+                C[i, j] += a * B[k, j]
+
+
+def _blocks(x, full, X):
+    """X[k] = S_k(x)."""
+    b, r = X.shape[0], X.shape[1]
+    nv = x.shape[0] // b
+    for k in range(b):
+        for i in range(r):
+            for j in range(r):
+                X[k, i, j] = x[k * nv + full[i, j]]
+
+
+def _assemble(M0, Xi, Lam, iu0, iu1, cw, Mw, shift):
+    """The upper triangle (C order; the lower one of the F-ordered view) of the Schur matrix
+    2 H + blockdiag(HKM_k) into Mw, the diagonal times 1 + shift. HKM_k's entry of the vech
+    pairs p = (i, j), q = (k, l) (i <= j, k <= l) is c_p c_q (Xi_ik L_jl + Xi_il L_jk +
+    L_ik Xi_jl + L_il Xi_jk); q runs over (k, l) row by row, so the inner loop over l is
+    contiguous in every factor."""
+    n = M0.shape[0]
+    b, r = Xi.shape[0], Xi.shape[1]
+    nv = n // b
+    for p in range(n):
+        Mw[p, p:] = M0[p, p:]
+    for blk in range(b):
+        X_, L_ = Xi[blk], Lam[blk]
+        o = blk * nv
+        for p in range(nv):
+            i, j, cp = iu0[p], iu1[p], cw[p]
+            row = Mw[o + p]
+            q0 = o + p  # the flat position of (k, l) = (i, j) in the row: start of the triangle
+            # first the rest of row k = i (l >= j), then full rows k > i (l >= k)
+            for k in range(i, r):
+                l0 = j if k == i else k
+                xik, xjk, lik, ljk = X_[i, k], X_[j, k], L_[i, k], L_[j, k]
+                ck = cp * (0.5 if k == l0 else 1.0)
+                cc = cp  # off-diagonal pairs weigh c_p
+                # the diagonal pair (k, k) first, if in range, with weight c_p / 2
+                start = l0
+                if l0 == k:
+                    v = xik * L_[j, k] + X_[i, k] * ljk + lik * X_[j, k] + L_[i, k] * xjk
+                    row[q0] += v * ck
+                    q0 += 1
+                    start = k + 1
+                for l in range(start, r):
+                    v = xik * L_[j, l] + X_[i, l] * ljk + lik * X_[j, l] + L_[i, l] * xjk
+                    row[q0] += v * cc
+                    q0 += 1
+    if shift != 0.0:
+        for p in range(n):
+            Mw[p, p] *= 1.0 + shift
+
+
+def _potrf(Mw, iw, ch):
+    """In-place lower Cholesky of the F-ordered view of Mw; True on success."""
+    iw[0] = Mw.shape[0]
+    iw[1] = Mw.shape[0]
+    iw[2] = 0
+    _dpotrf(ch[0:].ctypes, iw[0:].ctypes, Mw.ctypes, iw[1:].ctypes, iw[2:].ctypes)
+    return iw[2] == 0
+
+
+def _chol_solve(Mw, v, iw, ch):
+    """v <- (L L^T)^-1 v for the lower factor L of the F-ordered view of Mw (two dtrsv)."""
+    iw[0] = Mw.shape[0]
+    iw[1] = Mw.shape[0]
+    iw[3] = 1
+    # ch: 'L', 'N', 'T'
+    _dtrsv(ch[0:].ctypes, ch[1:].ctypes, ch[1:].ctypes, iw[0:].ctypes, Mw.ctypes, iw[1:].ctypes,
+           v.ctypes, iw[3:].ctypes)
+    _dtrsv(ch[0:].ctypes, ch[2:].ctypes, ch[1:].ctypes, iw[0:].ctypes, Mw.ctypes, iw[1:].ctypes,
+           v.ctypes, iw[3:].ctypes)
+
+
+def _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, ch):
+    """The numpy path's _direction: XiR = Xi R, dx from the Schur factor, dX = S(dx),
+    dL = sym(XiR - Xi dX Lambda). R is overwritten by XiR."""
+    b, r = Xi.shape[0], Xi.shape[1]
+    nv = rd.shape[0] // b
+    for k in range(b):
+        _matmul(Xi[k], R[k], T1)
+        for i in range(r):
+            for j in range(r):
+                R[k, i, j] = T1[i, j]
+        for p in range(nv):
+            i, j = iu0[p], iu1[p]
+            dx[k * nv + p] = -rd[k * nv + p] + Dw[p] * (0.5 * (T1[i, j] + T1[j, i]))
+    _chol_solve(Mw, dx, iw, ch)
+    _blocks(dx, full, dX)
+    for k in range(b):
+        _matmul(Xi[k], dX[k], T1)
+        _matmul(T1, Lam[k], T2)
+        for i in range(r):
+            for j in range(r):
+                T1[i, j] = R[k, i, j] - T2[i, j]
+        for i in range(r):
+            for j in range(r):
+                dL[k, i, j] = 0.5 * (T1[i, j] + T1[j, i])
+
+
+def _is_pd_shifted(W, c, Lw):
+    """Whether W + c I is positive definite (a Cholesky of its lower triangle succeeds)."""
+    r = W.shape[0]
+    for j in range(r):
+        s = W[j, j] + c
+        for k in range(j):
+            s -= Lw[j, k] * Lw[j, k]
+        if not s > 0.0:
+            return False
+        d = np.sqrt(s)
+        Lw[j, j] = d
+        for i in range(j + 1, r):
+            t = W[i, j]
+            for k in range(j):
+                t -= Lw[i, k] * Lw[j, k]
+            Lw[i, j] = t / d
+    return True
+
+
+def _min_eig(W, dg, e):
+    """Smallest eigenvalue of the symmetric W (overwritten): Householder reduction to a
+    tridiagonal (dg, e), then bisection on its Sturm count down to 2 u ||W|| - backward
+    stable, as accurate as LAPACK's eigvalsh."""
+    r = W.shape[0]
+    for k in range(r - 2):
+        nrm = 0.0
+        for i in range(k + 1, r):
+            nrm += W[i, k] * W[i, k]
+        nrm = np.sqrt(nrm)
+        if nrm == 0.0:
+            e[k] = 0.0
+            continue
+        alpha = -nrm if W[k + 1, k] >= 0 else nrm
+        vv = nrm * nrm - W[k + 1, k] * alpha  # |v|^2 / 2 for v = x - alpha e_1
+        W[k + 1, k] -= alpha  # v, kept in column k
+        e[k] = alpha
+        # p = A v / vv, w = p - (p.v / (2 vv)) v, A <- A - v w^T - w v^T on the trailing block
+        pv = 0.0
+        for i in range(k + 1, r):
+            t = 0.0
+            for j in range(k + 1, r):
+                t += W[i, j] * W[j, k]
+            dg[i] = t / vv  # p, in dg for now
+            pv += dg[i] * W[i, k]
+        c = pv / (2.0 * vv)
+        for i in range(k + 1, r):
+            dg[i] -= c * W[i, k]  # w
+        for i in range(k + 1, r):
+            for j in range(k + 1, r):
+                W[i, j] -= W[i, k] * dg[j] + dg[i] * W[j, k]
+    for k in range(r):
+        dg[k] = W[k, k]
+    if r >= 2:
+        e[r - 2] = W[r - 1, r - 2]
+    lo, hi, nrm = np.inf, -np.inf, 0.0
+    for i in range(r):  # Gershgorin bounds
+        rad = (abs(e[i - 1]) if i > 0 else 0.0) + (abs(e[i]) if i < r - 1 else 0.0)
+        lo, hi = min(lo, dg[i] - rad), max(hi, dg[i] + rad)
+        nrm = max(nrm, abs(dg[i]) + rad)
+    hi = min(hi, lo + 2.0 * nrm)
+    tol = 2.0 * 2.220446049250313e-16 * nrm + 1e-300
+    while hi - lo > tol:
+        x = 0.5 * (lo + hi)
+        if x == lo or x == hi:
+            break
+        q, count = dg[0] - x, 0  # Sturm count: eigenvalues < x
+        if q < 0.0:
+            count += 1
+        for i in range(1, r):
+            if q == 0.0:
+                q = -1e-300
+            q = dg[i] - x - e[i - 1] * e[i - 1] / q
+            if q < 0.0:
+                count += 1
+        if count >= 1:
+            hi = x
+        else:
+            lo = x
+    return 0.5 * (lo + hi)
+
+
+def _max_step(S, dX, dL, T1, W, Lw, dg, e):
+    """Largest a <= 1 with P_k + a dP_k >= 0 (P: X and Lambda), from S_k = R_k^-1:
+    1 / max(0, -min eig(S_k dP_k S_k^T)), as the numpy path. Only eigenvalues below -1/a
+    matter, a the bound so far (first 1): a block with S dP S^T + I / a > 0 (a Cholesky)
+    cannot lower it and needs no eigenvalue. NaN when a direction is not finite."""
+    b, r = dX.shape[0], dX.shape[1]
+    ev = -1.0
+    for kk in range(2 * b):
+        P = dX[kk] if kk < b else dL[kk - b]
+        Sk = S[kk]
+        _matmul(Sk, P, T1)
+        for i in range(r):  # W = (S P) S^T
+            for j in range(r):
+                t = 0.0
+                for k in range(r):
+                    t += T1[i, k] * Sk[j, k]
+                W[i, j] = t
+        for i in range(r):
+            for j in range(r):
+                if not np.isfinite(W[i, j]):
+                    return np.nan
+        if _is_pd_shifted(W, -ev, Lw):
+            continue
+        ev = min(ev, _min_eig(W, dg, e))
+    return min(1.0, -1.0 / ev)
+
+
+def _iterate(M0, hs2, c0, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_iter, gap_tol,
+             watch_below, trace, info):
+    """Iterations it0, it0 + 1, .. of PrimalDualIPM.run (x, Lam updated in place), until one
+    of them asks for Python: returns status bits (WATCH: m mu / f <= watch_below, CERTIFY:
+    the numpy loop's certify test, MAX_ITER, or a stop: X_NOT_PD, SCHUR_NOT_PD,
+    NOT_FINITE); info = [last iteration, mu, f, step, sigma]."""
+    n = x.shape[0]
+    b, r = Lam.shape[0], Lam.shape[1]
+    nv = n // b
+    m = b * r
+    X = np.empty((b, r, r))
+    S = np.empty((2 * b, r, r))
+    Xi = np.empty((b, r, r))
+    XL = np.empty((b, r, r))
+    R = np.empty((b, r, r))
+    dX = np.empty((b, r, r))
+    dL = np.empty((b, r, r))
+    T1 = np.empty((r, r))
+    T2 = np.empty((r, r))
+    Lw = np.empty((r, r))
+    dg = np.empty(r)
+    eo = np.empty(max(r - 1, 1))
+    rd = np.empty(n)
+    dx = np.empty(n)
+    y = np.empty(n)
+    iw = np.zeros(4, dtype=np.int32)
+    ch = np.array([76, 78, 84], dtype=np.uint8)  # 'L', 'N', 'T'
+    shifts = np.array([0.0, 1e-12, 1e-10, 1e-8])
+    np.dot(M0, x, y)
+    it = it0
+    while it <= max_iter:
+        info[0] = it
+        _blocks(x, full, X)
+        ok = True
+        for k in range(b):
+            ok = ok and _chol_inv(X[k], S[k], Lw) and _chol_inv(Lam[k], S[b + k], Lw)
+        if not ok:
+            return X_NOT_PD
+        for k in range(b):  # X^-1 = S^T S
+            Sk = S[k]
+            for i in range(r):
+                for j in range(r):
+                    t = 0.0
+                    for l in range(max(i, j), r):
+                        t += Sk[l, i] * Sk[l, j]
+                    Xi[k, i, j] = t
+        for k in range(b):
+            for p in range(nv):
+                rd[k * nv + p] = y[k * nv + p] + hs2[k * nv + p] - Dw[p] * Lam[k, iu0[p], iu1[p]]
+        mu = np.sum(X * Lam) / m
+        info[1] = mu
+        done = False
+        for shift in shifts:
+            _assemble(M0, Xi, Lam, iu0, iu1, cw, Mw, shift)
+            if _potrf(Mw, iw, ch):
+                done = True
+                break
+        if not done:
+            info[2] = 0.5 * (x @ y) + hs2 @ x + c0
+            return SCHUR_NOT_PD
+        for k in range(b):
+            _matmul(X[k], Lam[k], XL[k])
+        for k in range(b):  # predictor (mu -> 0)
+            for i in range(r):
+                for j in range(r):
+                    R[k, i, j] = -XL[k, i, j]
+        _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, ch)
+        a = _max_step(S, dX, dL, T1, T2, Lw, dg, eo)
+        if not np.isfinite(a):
+            return NOT_FINITE
+        mu_aff = 0.0
+        for k in range(b):
+            for i in range(r):
+                for j in range(r):
+                    mu_aff += (X[k, i, j] + a * dX[k, i, j]) * (Lam[k, i, j] + a * dL[k, i, j])
+        mu_aff /= m
+        sigma = (mu_aff / mu) ** 3
+        for k in range(b):  # corrector: R = sigma mu I - X Lambda - dX_aff dLambda_aff
+            _matmul(dX[k], dL[k], T1)
+            for i in range(r):
+                for j in range(r):
+                    R[k, i, j] = -XL[k, i, j] - T1[i, j]
+                R[k, i, i] += sigma * mu
+        _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, ch)
+        a = _max_step(S, dX, dL, T1, T2, Lw, dg, eo)
+        if not np.isfinite(a):
+            return NOT_FINITE
+        a = min(1.0, STEP_FRACTION * a)
+        for p in range(n):
+            x[p] += a * dx[p]
+        for k in range(b):
+            for i in range(r):
+                for j in range(r):
+                    Lam[k, i, j] += a * dL[k, i, j]
+        np.dot(M0, x, y)
+        _blocks(x, full, X)
+        mu = np.sum(X * Lam) / m
+        f_ref = max(abs(0.5 * (x @ y) + hs2 @ x + c0), 1e-300)
+        rel = m * mu / f_ref
+        trace[it - 1, 0] = a
+        trace[it - 1, 1] = sigma
+        trace[it - 1, 2] = rel
+        info[1], info[2], info[3], info[4] = mu, f_ref, a, sigma
+        status = 0
+        if rel <= watch_below:
+            status |= WATCH
+        if m * mu <= gap_tol * f_ref or a < 1e-3:
+            status |= CERTIFY
+        if status:
+            return status
+        it += 1
+    info[0] = max_iter
+    return MAX_ITER
+
+
+def _setup(H, T, M0):
+    """M0 = 2 T H T: the scaled Hessian, doubled."""
+    n = H.shape[0]
+    for p in range(n):
+        tp = 2.0 * T[p]
+        for q in range(n):
+            M0[p, q] = tp * H[p, q] * T[q]
+
+
+_A1, _A2, _A3 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]"
+_I1, _I2 = "int64[::1]", "int64[:, ::1]"
+_SIGNATURES = {
+    "_chol_inv": f"boolean({_A2}, {_A2}, {_A2})",
+    "_matmul": f"void({_A2}, {_A2}, {_A2})",
+    "_blocks": f"void({_A1}, {_I2}, {_A3})",
+    "_assemble": f"void({_A2}, {_A3}, {_A3}, {_I1}, {_I1}, {_A1}, {_A2}, float64)",
+    "_potrf": f"boolean({_A2}, int32[::1], uint8[::1])",
+    "_chol_solve": f"void({_A2}, {_A1}, int32[::1], uint8[::1])",
+    "_direction": f"void({_A2}, {_A3}, {_A3}, {_A1}, {_A3}, {_A1}, {_I1}, {_I1}, {_I2}, {_A1}, "
+                  f"{_A3}, {_A3}, {_A2}, {_A2}, int32[::1], uint8[::1])",
+    "_is_pd_shifted": f"boolean({_A2}, float64, {_A2})",
+    "_min_eig": f"float64({_A2}, {_A1}, {_A1})",
+    "_max_step": f"float64({_A3}, {_A3}, {_A3}, {_A2}, {_A2}, {_A2}, {_A1}, {_A1})",
+    "_iterate": f"int64({_A2}, {_A1}, float64, {_A1}, {_I1}, {_I1}, {_A1}, {_I2}, {_A1}, {_A3}, "
+                f"{_A2}, int64, int64, float64, float64, {_A2}, {_A1})",
+    "_setup": f"void({_A2}, {_A1}, {_A2})",
+}
+# helpers first: a kernel is compiled against the compiled helpers it calls
+_ORDER = ("_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_chol_solve", "_direction",
+          "_is_pd_shifted", "_min_eig", "_max_step", "_iterate", "_setup")
+
+
+def kernels() -> dict:
+    """The compiled kernels (compiled, or loaded from numba's cache, on the first call)."""
+    global _KERNELS, _COMPILE_SECONDS
+    if _KERNELS is None:
+        if not available():
+            raise RuntimeError("the compiled interior point is unavailable (numba missing or "
+                               f"{_jit.JIT_ENV}=0)")
+        t0 = time.perf_counter()
+        g = globals()
+        ext = _externals()
+        g["_dpotrf"], g["_dtrsv"] = ext["dpotrf"], ext["dtrsv"]
+        out = {}
+        for name in _ORDER:
+            # no fast-math: the same operations in the same order as written (FMA contraction
+            # aside), like the numpy path
+            out[name] = _jit.jit(g[name], _SIGNATURES[name], fastmath={"contract"},
+                                 error_model="numpy")
+            g[name] = out[name]
+        _KERNELS = out
+        _COMPILE_SECONDS = time.perf_counter() - t0
+    return _KERNELS
+
+
+def warm_up() -> float | None:
+    """Compile (or load from the cache) the kernels now; the seconds it took in this process
+    (0.0 when already done), or None when the JIT is unavailable or disabled."""
+    if not available():
+        return None
+    if _KERNELS is not None:
+        return 0.0
+    kernels()
+    return _COMPILE_SECONDS
+
+
+def compile_seconds() -> float | None:
+    """Seconds the first :func:`kernels` call took in this process (None before it)."""
+    return _COMPILE_SECONDS

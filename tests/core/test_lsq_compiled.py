@@ -1,0 +1,141 @@
+"""The compiled (numba) interior point iteration against the numpy reference: the same
+certified optimum (objectives to 1e-10, the same iteration counts, gaps <= 1e-8), the same
+certificate fields, and the numpy fallback when the JIT is disabled."""
+
+import numpy as np
+import pytest
+
+from dolfinx_lopinf.core import compiled, inference, lsq
+from dolfinx_lopinf.core.lsq import _compiled, ipm
+from dolfinx_lopinf.errors import InputError
+from dolfinx_lopinf.studies import benchmark
+
+needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed or JIT disabled")
+EPS = 1e-8
+
+
+def _gram_problem(data):
+    (Qs, dQs, ddQs, Us), _, _ = inference._unit_scaled(*data)
+    g = inference.gram_data(Qs, dQs, ddQs, Us)
+    return lsq.Problem(g.L, g.Z, 2, EPS, g.m)
+
+
+def _solve(problem, backend):
+    theta, cert = lsq.Auto(backend=backend).solve(problem)
+    return theta, cert, problem.objective(theta)
+
+
+# sets whose interior point path is stable under rounding (the numpy path itself moves by
+# less than 1e-12 when the data are perturbed at 1e-15), both blocks active on all but forced
+SETS = [("forced", 4, 600), ("forced", 6, 600), ("rigid", 6, 800), ("mixed", 6, 800),
+        ("short", 6, 800), ("short", 4, 3000)]
+
+
+@needs_numba
+@pytest.mark.parametrize("kind, r, n", SETS)
+def test_compiled_interior_point_reaches_the_numpy_optimum(kind, r, n):
+    data = benchmark.forced_data(r, n) if kind == "forced" else benchmark.active_data(kind, r, n)
+    problem = _gram_problem(data)
+    th_np, c_np, f_np = _solve(problem, "numpy")
+    th_nb, c_nb, f_nb = _solve(problem, "numba")
+    assert c_np.details["ipm"]["backend"] == "numpy" and c_nb.details["ipm"]["backend"] == "numba"
+    assert c_np.converged and c_nb.converged
+    assert c_nb.iterations == c_np.iterations
+    assert abs(f_nb - f_np) <= 1e-10 * f_np
+    assert c_nb.duality_gap <= 1e-8 and c_np.duality_gap <= 1e-8
+    assert c_nb.face_ranks == c_np.face_ranks
+    trace_np, trace_nb = np.array(c_np.details["ipm"]["trace"]), np.array(c_nb.details["ipm"]["trace"])
+    assert trace_nb.shape == trace_np.shape
+    # the step lengths, to rounding while the Schur matrix is well conditioned (the last
+    # iterations amplify rounding, both paths alike)
+    half = len(trace_np) // 2
+    np.testing.assert_allclose(trace_nb[:half, :2], trace_np[:half, :2], rtol=1e-9)
+    for k in range(2):
+        S = th_nb[:, k * r:(k + 1) * r]
+        assert np.array_equal(S, S.T)
+        assert np.linalg.eigvalsh(S).min() >= EPS - 64 * np.finfo(float).eps * np.abs(S).max()
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_interior_point_on_random_problems_and_one_active_block(seed):
+    """The test problems of test_solvers (both blocks active), and one block active only:
+    the other eliminated (the watch callback's path)."""
+    rng = np.random.default_rng(seed)
+    r, p = 5, 10
+    L = np.tril(rng.standard_normal((p, p))) + 3 * np.eye(p)
+    A = rng.standard_normal((r, r))
+    K = A @ A.T / r + 0.1 * np.eye(r)
+    w, Q = np.linalg.eigh(K)
+    K_ind = (Q * (w - 0.6 * w.max() * (np.arange(r) < r // 2))) @ Q.T
+    C = np.eye(r)
+    for blocks, eliminated in (([K_ind, K_ind - 0.1 * np.eye(r)], False),
+                               ([K_ind, C], True)):
+        theta_star = np.hstack([0.5 * (B + B.T) for B in blocks])
+        Z = -theta_star @ L + 1e-3 * rng.standard_normal((r, p))
+        problem = lsq.Problem(L, Z, 2, EPS)
+        _, c_np, f_np = _solve(problem, "numpy")
+        _, c_nb, f_nb = _solve(problem, "numba")
+        assert c_nb.converged and c_nb.iterations == c_np.iterations
+        assert abs(f_nb - f_np) <= 1e-10 * f_np
+        assert ("eliminated_blocks" in c_nb.details["ipm"]) == eliminated
+
+
+@needs_numba
+def test_compiled_interior_point_with_the_full_run_interface():
+    """PrimalDualIPM.run directly: the trace, mu, face ranks and a watch that stops it."""
+    problem, _ = _gram_problem(benchmark.active_data("rigid", 4, 600)).without_free()
+    H, h = problem.normal_equations
+    x, _ = lsq.problem.symmetric_start(problem)
+    out = {}
+    for backend in ("numpy", "numba"):
+        ipm_ = lsq.PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), 4, 2, EPS, backend)
+        out[backend] = ipm_.run(x, certify=problem.dual_gap, gap_tol=1e-8)
+        calls = []
+        stopped = ipm_.run(x, certify=problem.dual_gap, gap_tol=1e-8,
+                           watch=lambda xx, rel, calls=calls: calls.append(rel) or len(calls) < 3)
+        assert stopped[1].details["stopped"] == "stopped by watch" and stopped[1].iterations == 3
+        assert len(stopped[1].details["trace"]) == 3
+    (x_np, c_np), (x_nb, c_nb) = out["numpy"], out["numba"]
+    assert c_nb.iterations == c_np.iterations and c_nb.face_ranks == c_np.face_ranks
+    np.testing.assert_allclose(x_nb, x_np, rtol=0, atol=1e-7 * np.abs(x_np).max())
+    assert abs(c_nb.details["mu"] - c_np.details["mu"]) <= 1e-3 * c_np.details["mu"]
+    assert c_nb.duality_gap <= 1e-8
+
+
+@needs_numba
+def test_compiled_step_length_eigenvalue_matches_lapack():
+    k = _compiled.kernels()
+    rng = np.random.default_rng(3)
+    for r in (1, 2, 3, 5, 12, 20):
+        for t in range(30):
+            A = rng.standard_normal((r, r))
+            W = A + A.T
+            if t % 3 == 0:  # graded
+                g = np.geomspace(1.0, 1e-8, r)
+                W = W * g[:, None] * g[None, :]
+            ref = np.linalg.eigvalsh(W)
+            got = k["_min_eig"](W.copy(), np.empty(r), np.empty(max(r - 1, 1)))
+            assert abs(got - ref[0]) <= 8 * np.finfo(float).eps * np.abs(ref).max() * r
+    assert _compiled.warm_up() == 0.0 and _compiled.compile_seconds() > 0
+
+
+def test_jit_disabled_falls_back_to_the_numpy_iteration(monkeypatch):
+    monkeypatch.setenv(compiled.JIT_ENV, "0")
+    assert not _compiled.available() and _compiled.warm_up() is None
+    problem = _gram_problem(benchmark.active_data("mixed", 4, 600))
+    theta, cert = lsq.Auto().solve(problem)
+    assert cert.converged and cert.details["ipm"]["backend"] == "numpy"
+    H, h = problem.without_free()[0].normal_equations
+    assert ipm.PrimalDualIPM(H, h, 1.0, 4, 2, EPS).backend == "numpy"
+    with pytest.raises(InputError, match="numba"):
+        ipm.PrimalDualIPM(H, h, 1.0, 4, 2, EPS, backend="numba")
+
+
+def test_leased_scratch_arrays_are_reused_and_bounded():
+    a = lsq.linalg.lease((7, 7))
+    lsq.linalg.release(a)
+    assert lsq.linalg.lease((7, 7)) is a
+    for n in range(20, 30):
+        lsq.linalg.release(np.empty((n, n)))
+    assert len(lsq.linalg._SCRATCH) <= 4
