@@ -68,10 +68,13 @@ LABELS = {"poly_lopinf": "polynomial L-OpInf", "lopinf": "linear L-OpInf",
           "opinf_poly": "polynomial OpInf (no potential)"}
 COLORS = {"poly_lopinf": "C0", "lopinf": "C3", "intrusive": "C2", "galerkin": "C4",
           "galerkin_ecsw": "C5", "opinf_poly": "C1"}
-#: the FOM-assembled ROMs: numpy loop only (DOLFINx assembly per Newton iterate); their Newton
-#: tolerance sits above the rounding of the assembled force (sums over cells)
+#: the FOM-assembled ROMs: numpy loop only (DOLFINx assembly per Newton iterate). Their Newton
+#: test is |R| <= tol (size + dt/2 f_train), f_train the largest reduced force on the training
+#: states: an assembled force is a sum of cancelling cell terms, so near rest (small |R| terms)
+#: a purely relative test asks for digits below its rounding (measured: Newton stalls at the
+#: first steps of a = 50 with tol = 1e-9 and no absolute part)
 ASSEMBLED = ("galerkin", "galerkin_ecsw")
-ASSEMBLED_TOL = 1e-9
+ASSEMBLED_TOL = 1e-10
 
 
 def half_step_inputs(amp, n_steps, dt):
@@ -154,7 +157,10 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     K0 = galerkin.force_and_jacobian(np.zeros(r))[1]
     Cg, Bg = alpha * np.eye(r) + beta * K0, (Vb.T @ b_state)[:, None]
     models["galerkin"] = (galerkin, Cg, Bg)
-    fits["galerkin"] = {"seconds": time.perf_counter() - t0, "cells": galerkin.n_cells_used}
+    f_train = float(np.abs(galerkin.gradient(Qh_train[:, ::max(1, Qh_train.shape[1] // 40)])).max())
+    models["_atol"] = ASSEMBLED_TOL * 0.5 * dt * f_train
+    fits["galerkin"] = {"seconds": time.perf_counter() - t0, "cells": galerkin.n_cells_used,
+                        "newton_atol": models["_atol"]}
     # intrusive polynomial ROM: the reduced tensors of the Galerkin force (exact for SVK)
     t0 = time.perf_counter()
     ipot, imisfit = intrusive_potential(galerkin, Qh_train, rng)
@@ -183,12 +189,12 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     return models, fits, galerkin
 
 
-def _simulate(method, rom, *args, **kwargs):
+def _simulate(method, rom, *args, atol=0.0, **kwargs):
     """(trajectory of the default loop, seconds of the numpy loop): the polynomial models run
     compiled (numba, when available) and again with the numpy reference loop; the assembled
     Galerkin ROMs run the numpy loop (their force is a DOLFINx assembly)."""
     if method in ASSEMBLED:
-        tr = rom.simulate(*args, tol=ASSEMBLED_TOL, backend="numpy", **kwargs)
+        tr = rom.simulate(*args, tol=ASSEMBLED_TOL, atol=atol, backend="numpy", **kwargs)
         return tr, tr.seconds
     tr = rom.simulate(*args, **kwargs)
     if tr.backend == "numpy":
@@ -210,7 +216,7 @@ def _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds):
                              models["_ecsw_training"], tol=tol)
         ecsw = gn.GalerkinForce(cant.energy_form, cant.system.q, basis.V, cant.state_map, sampling=s)
         tr, _ = _simulate("galerkin_ecsw", pl.PolynomialROM(ecsw, Cg, Bg), np.zeros(r), np.zeros(r),
-                          dt, n, half_step_inputs(a, n, dt))
+                          dt, n, half_step_inputs(a, n, dt), atol=models["_atol"])
         err = lo.relative_error(runs[a][0].Y, E_state @ basis.V @ tr.Qh) if tr.stable else float("inf")
         rows.append({"material": material, "r": r, "amplitude": a, "tol": tol, "cells": len(s.cells),
                      "n_cells": s.n_cells, "ecsw_residual": s.residual, "tip_error": err,
@@ -231,7 +237,8 @@ def _test_rows(material, cfg, r, basis, models, fits, runs, E_state, fom_seconds
         for method in METHODS:
             model, C, B = models[method]
             rom = pl.PolynomialROM(model, C, B)
-            tr, sec_np = _simulate(method, rom, np.zeros(r), np.zeros(r), dt, n_test_steps, u_mid)
+            tr, sec_np = _simulate(method, rom, np.zeros(r), np.zeros(r), dt, n_test_steps, u_mid,
+                                   atol=models["_atol"])
             Qrec = basis.V @ tr.Qh
             Y = E_state @ Qrec
             state_err = lo.relative_error(snaps.Q, Qrec) if tr.stable else float("inf")
@@ -265,7 +272,8 @@ def _long_rows(material, cfg, r, basis, models, galerkin, snaps_long):
     for method in METHODS:
         model = models[method][0]
         for scheme in (("midpoint", "avf") if method == "poly_lopinf" else ("midpoint",)):
-            tr, sec_np = _simulate(method, pl.PolynomialROM(model), q0, v0, dt, n_long, scheme=scheme)
+            tr, sec_np = _simulate(method, pl.PolynomialROM(model), q0, v0, dt, n_long, scheme=scheme,
+                                   atol=models["_atol"])
             row = {"material": material, "method": method, "r": r, "scheme": scheme,
                    "t_long": n_long * dt, "stable": bool(tr.stable), "rom_seconds": tr.seconds,
                    "rom_backend": tr.backend, "rom_seconds_numpy": sec_np}
@@ -457,7 +465,7 @@ def _side_by_side(path, grid, frames, *, titles, title):
             plotter.add_mesh(outline, color="grey", line_width=1, opacity=0.6)  # undeformed
             plotter.add_mesh(g.warp_by_vector("u", factor=1.0), scalars="|u| [m]", cmap="viridis",
                              clim=clim, show_scalar_bar=(i == len(frames) - 1 and j == 0),
-                             scalar_bar_args={"title": "|u| [m]", "vertical": False,
+                             scalar_bar_args={"title": "displacement [m]", "vertical": False,
                                               "position_x": 0.25, "position_y": 0.05,
                                               "width": 0.5, "height": 0.12, "fmt": "%.2f"})
             plotter.add_text(f"{label}, {titles[i]}", font_size=8, position="upper_left")

@@ -458,7 +458,7 @@ def _poly_force(K, F2, F3, x, g, J, T2, T3):
         g[i] = acc
 
 
-def _poly_run(K, F2, F3, A0, Cm, BUT, q, p, dt, n_steps, avf, tol, max_iter, limit, Q, P,
+def _poly_run(K, F2, F3, A0, Cm, BUT, q, p, dt, n_steps, avf, tol, atol, max_iter, limit, Q, P,
               stats):
     """PolynomialROM.simulate's loop (same residual, Newton update and stopping test; see
     there). stats: [0] steps done, [1] Newton iterations, [2] 1 when stable, 0 when Newton
@@ -527,7 +527,7 @@ def _poly_run(K, F2, F3, A0, Cm, BUT, q, p, dt, n_steps, avf, tol, max_iter, lim
             rmax = 0.0
             for a in range(r):
                 rmax = max(rmax, abs(R[a]))
-            if rmax <= tol * max(size, 1e-300):
+            if rmax <= tol * max(size, 1e-300) + atol:
                 ok = True
                 break
             iters += 1
@@ -570,7 +570,8 @@ _POLY_SIGNATURES = {
                    "float64[::1], float64[:, ::1], float64[:, ::1], float64[:, ::1])",
     "_poly_run": "void(float64[:, ::1], float64[:, :, ::1], float64[:, :, :, ::1], float64[:, ::1], "
                  "float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], float64, int64, "
-                 "boolean, float64, int64, float64, float64[:, ::1], float64[:, ::1], int64[::1])",
+                 "boolean, float64, float64, int64, float64, float64[:, ::1], float64[:, ::1], "
+                 "int64[::1])",
 }
 _POLY_KERNELS: dict | None = None
 _POLY_COMPILE_SECONDS: float | None = None

@@ -298,3 +298,23 @@ def test_polynomial_tensors_reproduce_the_force():
         assert np.allclose(J, K + 2 * np.einsum("ijk,k->ij", F2, x)
                            + 3 * np.einsum("ijkl,k,l->ij", F3, x, x), rtol=1e-13, atol=1e-13)
     assert pl.polynomial_tensors(object()) is None
+
+
+def test_absolute_tolerance_is_honoured_by_both_loops():
+    """atol > 0 (the rounding floor of an assembled force) stops Newton earlier, identically in
+    the numpy and the compiled loop; negative or NaN atol is a named error."""
+    r, n, dt = 3, 400, 0.02
+    pot, _ = _sos_potential(r, seed=21)
+    rom = pl.PolynomialROM(pot, 0.02 * np.eye(r))
+    q0 = 0.3 * np.random.default_rng(22).standard_normal(r)
+    tight = rom.simulate(q0, np.zeros(r), dt, n, backend="numpy")
+    loose = rom.simulate(q0, np.zeros(r), dt, n, backend="numpy", atol=1e-5)
+    assert loose.newton_iterations < tight.newton_iterations
+    assert _rel(tight.Qh, loose.Qh) < 1e-3
+    if compiled.available():
+        fast = rom.simulate(q0, np.zeros(r), dt, n, backend="numba", atol=1e-5)
+        assert fast.newton_iterations == loose.newton_iterations
+        assert _rel(loose.Qh, fast.Qh) <= 1e-12
+    for bad in (-1.0, float("nan"), "x"):
+        with pytest.raises(InputError, match="atol"):
+            rom.simulate(q0, np.zeros(r), dt, 3, atol=bad)
