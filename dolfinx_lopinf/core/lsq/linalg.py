@@ -82,13 +82,19 @@ class SPDSolver:
     def __init__(self, H: np.ndarray):
         self.d = np.sqrt(np.maximum(np.diag(H), 1e-300))
         dd = np.outer(self.d, self.d, out=lease(H.shape))
-        Hs = np.divide(H, dd)
+        self._buf = Hs = np.divide(H, dd, out=lease(H.shape))  # given back by __del__
         release(dd)
         # lower Cholesky of the F-ordered view of the symmetric Hs, in place (no copy, faster
         # than upper): its lower triangle (the upper one of Hs) becomes the factor
         self.c, status = scipy.linalg.lapack.dpotrf(Hs.T, lower=1, clean=0, overwrite_a=1)
         self.ok = status == 0
         self._H = H
+
+    def __del__(self):
+        buf = getattr(self, "_buf", None)
+        if buf is not None and release is not None:  # release is None at interpreter exit
+            self._buf = self.c = None
+            release(buf)
 
     @functools.cached_property
     def Hs(self) -> np.ndarray:
