@@ -103,11 +103,13 @@ class PrimalDualIPM:
         dg = np.diag(H).reshape(n_blocks, ix.nv)[:, ix.iu[0] == ix.iu[1]]
         self.dsc = np.maximum(dg, 1e-300) ** -0.25
         self.T = (self.dsc[:, ix.iu[0]] * self.dsc[:, ix.iu[1]]).reshape(-1)
-        self.c0 = quadratic(H, h, const, self.x_eps)
         if self.backend == "numba":  # 2 Hs is formed by run() (in leased space), 2 hs here
+            Hx = H @ self.x_eps  # quadratic(H, h, const, x_eps) with its product kept
+            self.c0 = float(self.x_eps @ Hx + 2.0 * h @ self.x_eps + const)
             self.H = np.ascontiguousarray(H, dtype=float)
-            self.hs2 = 2.0 * self.T * (H @ self.x_eps + h)
+            self.hs2 = 2.0 * self.T * (Hx + h)
             return
+        self.c0 = quadratic(H, h, const, self.x_eps)
         self.Hs = self.T[:, None] * H * self.T[None, :]
         self.hs = self.T * (H @ self.x_eps + h)
         self.H2 = 2.0 * self.Hs
