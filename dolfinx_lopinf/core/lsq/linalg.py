@@ -5,6 +5,7 @@ vech index tables and the normal equations in the vech unknowns."""
 from __future__ import annotations
 
 import functools
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -49,6 +50,7 @@ def cholesky_solve(c: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 _SCRATCH: OrderedDict = OrderedDict()  # shape -> free arrays
+_SCRATCH_LOCK = threading.Lock()
 
 
 def lease(shape) -> np.ndarray:
@@ -56,22 +58,23 @@ def lease(shape) -> np.ndarray:
     back with :func:`release`). A fresh n x n array costs a page fault per 4 kB on first
     touch - about 0.5 ms for the 420 x 420 matrices of an r = 20 fit, as much as their
     Cholesky - so the large temporaries of the interior point are reused between fits."""
-    free = _SCRATCH.get(shape)
-    try:
-        return free.pop()
-    except (AttributeError, IndexError):
-        return np.empty(shape)
+    with _SCRATCH_LOCK:
+        free = _SCRATCH.get(shape)
+        if free:
+            return free.pop()
+    return np.empty(shape)
 
 
 def release(*arrays: np.ndarray) -> None:
     """Give leased arrays back (a few per shape, for the four most recent shapes)."""
-    for a in arrays:
-        free = _SCRATCH.setdefault(a.shape, [])
-        _SCRATCH.move_to_end(a.shape)
-        if len(free) < 4:
-            free.append(a)
-    while len(_SCRATCH) > 4:
-        _SCRATCH.popitem(last=False)
+    with _SCRATCH_LOCK:
+        for a in arrays:
+            free = _SCRATCH.setdefault(a.shape, [])
+            _SCRATCH.move_to_end(a.shape)
+            if len(free) < 4:
+                free.append(a)
+        while len(_SCRATCH) > 4:
+            _SCRATCH.popitem(last=False)
 
 
 class SPDSolver:
@@ -92,9 +95,12 @@ class SPDSolver:
 
     def __del__(self):
         buf = getattr(self, "_buf", None)
-        if buf is not None and release is not None:  # release is None at interpreter exit
+        if buf is not None:
             self._buf = self.c = None
-            release(buf)
+            try:
+                release(buf)
+            except Exception:  # noqa: BLE001 - module globals already gone at interpreter exit
+                pass
 
     @functools.cached_property
     def Hs(self) -> np.ndarray:
