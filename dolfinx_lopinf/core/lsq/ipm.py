@@ -288,6 +288,17 @@ class PrimalDualIPM:
         return dx, dX, sym(XiR - Xi @ dX @ Lam)
 
 
+def _sub(H: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """H[np.ix_(rows, cols)] - a view when both are runs of consecutive indices (two blocks:
+    always), no gather."""
+    def run(idx):
+        return len(idx) and idx[-1] - idx[0] == len(idx) - 1
+
+    if run(rows) and run(cols):
+        return H[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    return H[np.ix_(rows, cols)]
+
+
 class _ActiveBlocks:
     """The interior point on the blocks whose unconstrained minimiser is not >= eps I, the
     others (``feasible``, presumed inactive at the optimum) minimised out exactly:
@@ -302,12 +313,13 @@ class _ActiveBlocks:
         self.problem, self.feasible = problem, feasible
         pos = np.arange(problem.index.n).reshape(problem.n_blocks, problem.index.nv)
         self.a_idx, self.f_idx = pos[~feasible].ravel(), pos[feasible].ravel()
-        Hff = SPDSolver(H[np.ix_(self.f_idx, self.f_idx)])
+        a, f = self.a_idx, self.f_idx
+        Hff = SPDSolver(np.ascontiguousarray(_sub(H, f, f)))
         self.ok = Hff.ok
         if self.ok:
-            Hfa = H[np.ix_(self.f_idx, self.a_idx)]
-            self.W = Hff.solve(np.column_stack([Hfa, h[self.f_idx]]))  # H_ff^-1 [H_fa, h_f]
-            self.Hr = sym(H[np.ix_(self.a_idx, self.a_idx)] - Hfa.T @ self.W[:, :-1])
+            Hfa = _sub(H, f, a)
+            self.W = Hff.solve(np.column_stack([Hfa, h[f]]))  # H_ff^-1 [H_fa, h_f]
+            self.Hr = sym(_sub(H, a, a) - Hfa.T @ self.W[:, :-1])
             self.hr = h[self.a_idx] - Hfa.T @ self.W[:, -1]
             self.const = float(np.sum(problem.Z**2) - h[self.f_idx] @ self.W[:, -1])
 
