@@ -190,19 +190,23 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
 
 
 def _simulate(method, rom, *args, atol=0.0, **kwargs):
-    """(trajectory of the default loop, seconds of the numpy loop): the polynomial models run
-    compiled (numba, when available) and again with the numpy reference loop; the assembled
-    Galerkin ROMs run the numpy loop (their force is a DOLFINx assembly)."""
+    """(trajectory of the default loop, seconds of the numpy loop, relative max difference of
+    the two loops' states or None): the polynomial models run compiled (numba, when available)
+    and again with the numpy reference loop; the assembled Galerkin ROMs run the numpy loop
+    (their force is a DOLFINx assembly). The loops do the same arithmetic in another order, so
+    they agree to rounding at first; over long runs of a nonlinear (chaotic) model the
+    difference grows - recorded, not hidden."""
     if method in ASSEMBLED:
         tr = rom.simulate(*args, tol=ASSEMBLED_TOL, atol=atol, backend="numpy", **kwargs)
-        return tr, tr.seconds
+        return tr, tr.seconds, None
     tr = rom.simulate(*args, **kwargs)
     if tr.backend == "numpy":
-        return tr, tr.seconds
+        return tr, tr.seconds, None
     ref = rom.simulate(*args, backend="numpy", **kwargs)
-    if tr.stable and ref.stable:  # the two loops agree (same Newton iteration, same test)
-        assert np.abs(tr.Qh - ref.Qh).max() <= 1e-8 * max(np.abs(ref.Qh).max(), 1e-300), method
-    return tr, ref.seconds
+    diff = None
+    if tr.stable and ref.stable:
+        diff = float(np.abs(tr.Qh - ref.Qh).max() / max(np.abs(ref.Qh).max(), 1e-300))
+    return tr, ref.seconds, diff
 
 
 def _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds):
@@ -215,7 +219,7 @@ def _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds):
         s = gn.ecsw_sampling(cant.energy_form, cant.system.q, basis.V, cant.state_map,
                              models["_ecsw_training"], tol=tol)
         ecsw = gn.GalerkinForce(cant.energy_form, cant.system.q, basis.V, cant.state_map, sampling=s)
-        tr, _ = _simulate("galerkin_ecsw", pl.PolynomialROM(ecsw, Cg, Bg), np.zeros(r), np.zeros(r),
+        tr, *_ = _simulate("galerkin_ecsw", pl.PolynomialROM(ecsw, Cg, Bg), np.zeros(r), np.zeros(r),
                           dt, n, half_step_inputs(a, n, dt), atol=models["_atol"])
         err = lo.relative_error(runs[a][0].Y, E_state @ basis.V @ tr.Qh) if tr.stable else float("inf")
         rows.append({"material": material, "r": r, "amplitude": a, "tol": tol, "cells": len(s.cells),
@@ -237,8 +241,8 @@ def _test_rows(material, cfg, r, basis, models, fits, runs, E_state, fom_seconds
         for method in METHODS:
             model, C, B = models[method]
             rom = pl.PolynomialROM(model, C, B)
-            tr, sec_np = _simulate(method, rom, np.zeros(r), np.zeros(r), dt, n_test_steps, u_mid,
-                                   atol=models["_atol"])
+            tr, sec_np, diff = _simulate(method, rom, np.zeros(r), np.zeros(r), dt, n_test_steps,
+                                         u_mid, atol=models["_atol"])
             Qrec = basis.V @ tr.Qh
             Y = E_state @ Qrec
             state_err = lo.relative_error(snaps.Q, Qrec) if tr.stable else float("inf")
@@ -248,7 +252,7 @@ def _test_rows(material, cfg, r, basis, models, fits, runs, E_state, fom_seconds
                          "projection_error": basis.projection_error(snaps.Q),
                          "stable": bool(tr.stable), "rom_seconds": tr.seconds,
                          "rom_backend": tr.backend, "rom_seconds_numpy": sec_np,
-                         "fom_seconds": fom_seconds[a], "speedup": fom_seconds[a] / tr.seconds,
+                         "loop_difference": diff, "fom_seconds": fom_seconds[a], "speedup": fom_seconds[a] / tr.seconds,
                          "speedup_numpy": fom_seconds[a] / sec_np,
                          "newton_iterations": tr.newton_iterations,
                          "fit_seconds": fits[method].get("seconds"),
@@ -272,11 +276,11 @@ def _long_rows(material, cfg, r, basis, models, galerkin, snaps_long):
     for method in METHODS:
         model = models[method][0]
         for scheme in (("midpoint", "avf") if method == "poly_lopinf" else ("midpoint",)):
-            tr, sec_np = _simulate(method, pl.PolynomialROM(model), q0, v0, dt, n_long, scheme=scheme,
-                                   atol=models["_atol"])
+            tr, sec_np, diff = _simulate(method, pl.PolynomialROM(model), q0, v0, dt, n_long,
+                                         scheme=scheme, atol=models["_atol"])
             row = {"material": material, "method": method, "r": r, "scheme": scheme,
                    "t_long": n_long * dt, "stable": bool(tr.stable), "rom_seconds": tr.seconds,
-                   "rom_backend": tr.backend, "rom_seconds_numpy": sec_np}
+                   "rom_backend": tr.backend, "rom_seconds_numpy": sec_np, "loop_difference": diff}
             if tr.energy is not None and tr.stable:
                 row["rom_energy_drift"] = float(np.abs(tr.energy - tr.energy[0]).max()
                                                 / abs(tr.energy[0]))
@@ -471,9 +475,9 @@ def _side_by_side(path, grid, frames, *, titles, title):
             plotter.add_text(f"{label}, {titles[i]}", font_size=8, position="upper_left")
             if i == len(frames) - 1 and j == len(labels) - 1:
                 plotter.add_text(title, font_size=7, position="lower_right")
-            plotter.camera_position = [(0.5, -2.6, -0.15), (0.5, 0.0, -0.15), (0, 0, 1)]
+            plotter.camera_position = [(0.5, -2.6, -0.08), (0.5, 0.0, -0.08), (0, 0, 1)]
             plotter.camera.parallel_projection = True
-            plotter.camera.parallel_scale = 0.42
+            plotter.camera.parallel_scale = 0.5
     path = Path(path)
     plotter.screenshot(str(path))
     plotter.close()
