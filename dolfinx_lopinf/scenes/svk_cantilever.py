@@ -159,6 +159,14 @@ class Cantilever:
         n = len(self.system.q.x.array)
         return np.zeros(n), np.zeros(n)
 
+    def set_probe_input(self, integrator, u) -> None:
+        """Make ``integrator``'s next step carry the load u[0] b (the input of the reduced
+        model; 0 when u is empty): amplitude u[0] at a time in the hold phase, where s = 1.
+        The ``set_input`` of :func:`dolfinx_lopinf.fem.probes.probe`."""
+        u = np.atleast_1d(np.asarray(u, dtype=float))
+        self.amplitude.value = float(u[0]) if u.size else 0.0
+        integrator.t = 0.5 * (T_RAMP + T_HOLD)
+
 
 def build(material: str = "svk", cells=(10, 1, 1), comm=MPI.COMM_WORLD,
           damping: bool = True) -> Cantilever:

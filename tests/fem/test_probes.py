@@ -1,0 +1,92 @@
+"""Black-box probes (dolfinx_lopinf.fem.probes) on the SVK cantilever: the Richardson
+accelerations equal the Galerkin ones V^T(-f(Vq) - C V v + b u) of the FOM, the error
+estimate bounds the error, a polynomial L-OpInf fit of them is the Galerkin reduced force,
+and bad input is named."""
+
+import numpy as np
+import pytest
+
+import dolfinx_lopinf as lo
+from dolfinx_lopinf.core import polynomial as pl
+from dolfinx_lopinf.errors import InputError
+from dolfinx_lopinf.fem import probes
+from dolfinx_lopinf.fem.intrusive import dense_state_matrix
+from dolfinx_lopinf.scenes import svk_cantilever as scene
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cant = scene.build("svk", (4, 1, 1))
+    cant.amplitude.value = 250.0
+    snaps, _ = lo.run(cant.system, *cant.initial_state(), scene.DT, 0.4,
+                      output_matrix=cant.output_matrix, state_map=cant.state_map,
+                      progress=False, record_velocity=False, energy_every=0)
+    M = dense_state_matrix(cant.system.mass_form, cant.V, cant.state_map)
+    basis = lo.pod(snaps.Q, 3, weight=M)
+    Qh = basis.project(snaps.Q)
+    return cant, M, basis.V, Qh, np.gradient(Qh, scene.DT, axis=1)
+
+
+def _galerkin(cant, V, Q, Vel, U):
+    """The Galerkin acceleration, with V^T K0 V by central differences (exact for its
+    quadratic part)."""
+    eps = 1e-6
+    K0V = np.column_stack([(cant.internal_force(eps * V[:, [j]]) - cant.internal_force(-eps * V[:, [j]]))[:, 0]
+                           / (2 * eps) for j in range(V.shape[1])])
+    alpha, beta = scene.RAYLEIGH
+    Ch = alpha * np.eye(V.shape[1]) + beta * 0.5 * (V.T @ K0V + K0V.T @ V)
+    return -(V.T @ cant.internal_force(V @ Q) + Ch @ Vel) + (V.T @ cant.load_vector())[:, None] * U
+
+
+def test_probe_accelerations_are_the_galerkin_ones(setup):
+    cant, M, V, Qh, Vh = setup
+    rng = np.random.default_rng(0)
+    Q, Vel, U = probes.probe_points(Qh, Vh, 6, rng=rng, inputs_range=(0, 250))
+    pd = probes.probe(cant.system, V, M, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
+                      step_size=1e-6)
+    exact = _galerkin(cant, V, Q, Vel, U)
+    err = np.linalg.norm(pd.A - exact, axis=0) / np.linalg.norm(exact, axis=0)
+    assert err.max() < 1e-4, err
+    assert np.all(pd.error_estimate >= err), (pd.error_estimate, err)  # conservative here
+    # one step alone is far off (the Richardson extrapolation is what makes it exact)
+    one = probes.probe(cant.system, V, M, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
+                       step_size=1e-6, levels=2)
+    err2 = np.linalg.norm(one.A - exact, axis=0) / np.linalg.norm(exact, axis=0)
+    assert err.max() < err2.max()
+    assert pd.fom_steps == 3 * Q.shape[1] and pd.summary()["samples"] == Q.shape[1]
+
+
+def test_fit_of_probe_data_is_the_galerkin_reduced_force(setup):
+    cant, M, V, Qh, Vh = setup
+    rng = np.random.default_rng(1)
+    r = V.shape[1]
+    n = int(2 * pl.n_unknowns(r, 1)["total"] / r) + 10
+    Q, Vel, U = probes.probe_points(Qh, Vh, n, rng=rng, inputs_range=(0, 250))
+    pd = probes.probe(cant.system, V, M, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
+                      step_size=1e-6)
+    ops = pl.fit_polynomial(pd.data(), constraint="none")
+    Qt = 1.2 * Qh[:, rng.integers(0, Qh.shape[1], 20)]  # unseen states, beyond the samples' scale
+    F = V.T @ cant.internal_force(V @ Qt)
+    assert np.linalg.norm(ops.potential.gradient(Qt) - F) / np.linalg.norm(F) < 1e-4
+    assert np.linalg.norm(ops.B[:, 0] - V.T @ cant.load_vector()) / np.linalg.norm(ops.B) < 1e-4
+    assert np.linalg.eigvalsh(ops.C).min() > 0
+
+
+def test_probe_names_bad_input(setup):
+    cant, M, V, Qh, Vh = setup
+    Q, Vel = Qh[:, :2], Vh[:, :2]
+    args = (cant.system, V, M, cant.state_map)
+    with pytest.raises(InputError, match="M-orthonormal"):
+        probes.probe(cant.system, 2 * V, M, cant.state_map, Q, Vel, step_size=1e-6)
+    with pytest.raises(InputError, match="set_input"):
+        probes.probe(*args, Q, Vel, np.ones((1, 2)), step_size=1e-6)
+    with pytest.raises(InputError, match="levels"):
+        probes.probe(*args, Q, Vel, step_size=1e-6, levels=1)
+    with pytest.raises(InputError, match="step_size"):
+        probes.probe(*args, Q, Vel, step_size=0.0)
+    with pytest.raises(InputError, match="must both be"):
+        probes.probe(*args, Q, Vel[:, :1], step_size=1e-6)
+    with pytest.raises(InputError, match="black_box"):
+        probes.probe("fom", V, M, cant.state_map, Q, Vel, step_size=1e-6)
+    with pytest.raises(InputError, match="scale_max"):
+        probes.probe_points(Qh, Vh, 3, rng=np.random.default_rng(0), scale_max=0.5)
