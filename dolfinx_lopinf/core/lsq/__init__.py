@@ -1,4 +1,5 @@
-"""Structured least-squares solvers behind :mod:`dolfinx_lopinf.core.inference` (numpy only).
+"""Structured least-squares solvers behind :mod:`dolfinx_lopinf.core.inference` (numpy; numba
+optional).
 
 All solve, for an unknown Theta (r, p) whose column blocks are "symmetric PSD" (K, C) or
 free (B), the compressed problem
@@ -30,7 +31,10 @@ The functions of earlier versions (:func:`solve_psd_blocks`, :func:`solve_psd_si
 
 Layout: ``linalg`` (the shared numerics: objective, PSD projection, SPD solve, vech index
 tables, normal equations), ``problem`` (Problem, Certificate, KKT residuals, elimination of
-the free columns), ``lyapunov``, ``ipm``, ``face``, ``barrier``, ``blocks``.
+the free columns), ``lyapunov``, ``ipm``, ``face``, ``barrier``, ``blocks``, and
+``_compiled``: the interior point's iteration compiled with numba when it is installed
+(``backend="auto"`` of :class:`InteriorPoint`, :class:`PSDBlocks`, :class:`Auto`; the numpy
+iteration is the reference and the fallback, also with ``DOLFINX_LOPINF_JIT=0``).
 """
 
 from .barrier import Barrier, solve_ipm
