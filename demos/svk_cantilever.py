@@ -298,8 +298,19 @@ def main(argv=None):
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="6 cells, SVK only, r in {4, 6}, one test amplitude")
     parser.add_argument("--out", default="results/svk_cantilever")
+    parser.add_argument("--cells", default=None,
+                        help="Q2 cells 'nx,ny,nz' (default 10,1,1; quick 6,1,1) - e.g. 20,2,2 to "
+                             "give ECSW cells to drop (80 cells, 3075 dofs: ~10x the FOM time)")
     args = parser.parse_args(argv)
-    cfg = QUICK if args.quick else FULL
+    cfg = dict(QUICK if args.quick else FULL)
+    if args.cells is not None:
+        try:
+            cells = tuple(int(c) for c in args.cells.split(","))
+        except ValueError:
+            cells = ()
+        if len(cells) != 3 or min(cells) < 1:
+            parser.error(f"--cells must be three positive integers 'nx,ny,nz', got {args.cells!r}")
+        cfg["cells"] = cells
     if MPI.COMM_WORLD.size > 1:
         raise SystemExit("this demo runs on one rank")
     out = Path(args.out)
