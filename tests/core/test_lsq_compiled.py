@@ -139,3 +139,18 @@ def test_leased_scratch_arrays_are_reused_and_bounded():
     for n in range(20, 30):
         lsq.linalg.release(np.empty((n, n)))
     assert len(lsq.linalg._SCRATCH) <= 4
+
+
+@needs_numba
+def test_compiled_interior_point_stopped_short_takes_the_same_crossover():
+    """max_iter reached: both iterations stop at the same count, uncertified, and the
+    crossover to Newton on the face (or its absence) is the same."""
+    problem = _gram_problem(benchmark.forced_data(6, 600))
+    for max_iter in (3, 6):
+        out = {}
+        for backend in ("numpy", "numba"):
+            theta, cert = lsq.InteriorPoint(max_iter=max_iter, backend=backend).solve(problem)
+            out[backend] = (cert.iterations, cert.converged, "crossover" in cert.details["ipm"]
+                            or cert.details.get("crossover", False), problem.objective(theta))
+        assert out["numba"][:3] == out["numpy"][:3]
+        assert abs(out["numba"][3] - out["numpy"][3]) <= 1e-10 * out["numpy"][3]
