@@ -746,9 +746,11 @@ class RomTrajectory:
     newton_iterations: int
     stable: bool
     backend: str = "numpy"  # the loop that ran: "numpy" (reference) or "numba"
+    jacobians: int | None = None  # Newton matrices factorised (= newton_iterations when fresh)
 
 
 _GAUSS = (0.5 - 0.5 / np.sqrt(3.0), 0.5 + 0.5 / np.sqrt(3.0))
+_LAZY_THETA = 0.1  # simplified Newton: refresh the Jacobian when |delta_k| > this |delta_(k-1)|
 
 
 def polynomial_tensors(model):
@@ -800,7 +802,8 @@ class PolynomialROM:
 
     def simulate(self, q0, v0, dt: float, n_steps: int, inputs_mid=None, *, scheme="midpoint",
                  tol: float = 1e-13, max_iter: int = 50, blowup: float = 1e8,
-                 backend: str = "auto", atol: float = 0.0) -> RomTrajectory:
+                 backend: str = "auto", atol: float = 0.0,
+                 jacobian: str = "fresh") -> RomTrajectory:
         """Integrate n_steps from (q0, v0); ``inputs_mid`` (m, n_steps): u(t_{k+1/2}).
 
         Each step solves, for d = q1 - q0 (reduced Newton until the residual is below ``tol``
@@ -814,6 +817,14 @@ class PolynomialROM:
         machine precision relative to its own size (a DOLFINx-assembled force near rest sums
         cell terms that cancel, so near rest, where every term of R is small, a purely relative
         test can ask for digits below its rounding).
+
+        ``jacobian``: ``"fresh"`` (Newton: the Jacobian at every iterate) or ``"lazy"``
+        (simplified Newton, numpy loop only: the last factorised Newton matrix is kept, across
+        steps too, and formed afresh at the next iterate only when convergence slows,
+        |delta_k| > 0.1 |delta_(k-1)|; iterates in between evaluate the force alone -
+        ``model.force`` or ``model.gradient`` when it has one). Same stopping test, so the
+        states agree to the Newton tolerance; it pays when the Jacobian costs far more than
+        the force (the FOM-assembled Galerkin force: r + 1 assemblies against 1).
 
         ``backend``: ``"numpy"`` (the reference loop, any model), ``"numba"`` (the compiled loop
         of :mod:`dolfinx_lopinf.core.compiled` for a :class:`PolynomialPotential` or
@@ -850,8 +861,16 @@ class PolynomialROM:
                 raise InputError(f"inputs_mid must be (m = {self.B.shape[1]}, n_steps = {n_steps}), "
                                  f"got {U.shape}")
             BU = self.B @ U
+        if jacobian not in ("fresh", "lazy"):
+            raise InputError(f"jacobian must be 'fresh' or 'lazy', got {jacobian!r}")
+        lazy = jacobian == "lazy"
         requested = backend
         backend = compiled.resolve_backend(backend)
+        if backend == "numba" and lazy:
+            if requested == "numba":
+                raise InputError("jacobian='lazy' runs in the numpy loop only (the compiled loop's "
+                                 "polynomial Jacobian is cheap); pass backend='auto' or 'numpy'")
+            backend = "numpy"
         if backend == "numba":
             if self._tensors is None:
                 self._tensors = polynomial_tensors(self.model)
@@ -884,23 +903,36 @@ class PolynomialROM:
                 raise np.linalg.LinAlgError(f"Singular matrix (the reduced Newton matrix at step "
                                             f"{int(stats[0]) + 1})")
             return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, int(stats[1]),
-                                 bool(stats[2] == 1), backend)
+                                 bool(stats[2] == 1), backend, int(stats[1]))
         fj = self.model.force_and_jacobian
-        iters, stable = 0, True
+        f_only = getattr(self.model, "force", None) or getattr(self.model, "gradient", None)
+        if f_only is None:
+            f_only = lambda x: fj(x)[0]  # noqa: E731
+        iters, n_jac, stable = 0, 0, True
+        lu = None
+        need_j = True
         d = dt * p
         t0 = time.perf_counter()
         for k in range(n_steps):
             rhs = p + (0.5 * dt * BU[:, k] if U is not None else 0.0)
             ok = False
+            prev = np.inf
             for _ in range(max_iter):
+                fresh = not lazy or need_j or lu is None
                 if scheme == "midpoint":
-                    g, J = fj(q + 0.5 * d)
-                    J = 0.5 * J
+                    if fresh:
+                        g, J = fj(q + 0.5 * d)
+                        J = 0.5 * J
+                    else:
+                        g = f_only(q + 0.5 * d)
                 else:
-                    g1, J1 = fj(q + _GAUSS[0] * d)
-                    g2, J2 = fj(q + _GAUSS[1] * d)
+                    if fresh:
+                        g1, J1 = fj(q + _GAUSS[0] * d)
+                        g2, J2 = fj(q + _GAUSS[1] * d)
+                        J = 0.5 * (_GAUSS[0] * J1 + _GAUSS[1] * J2)
+                    else:
+                        g1, g2 = f_only(q + _GAUSS[0] * d), f_only(q + _GAUSS[1] * d)
                     g = 0.5 * (g1 + g2)
-                    J = 0.5 * (_GAUSS[0] * J1 + _GAUSS[1] * J2)
                 Ad = A0 @ d
                 R = Ad + 0.5 * dt * g - rhs
                 size = np.abs(Ad).max() + 0.5 * dt * np.abs(g).max() + np.abs(rhs).max()
@@ -910,7 +942,20 @@ class PolynomialROM:
                     ok = True
                     break
                 iters += 1
-                d = d - np.linalg.solve(A0 + 0.5 * dt * J, R)
+                if not lazy:
+                    n_jac += 1
+                    d = d - np.linalg.solve(A0 + 0.5 * dt * J, R)
+                    continue
+                if fresh:
+                    n_jac += 1
+                    lu = scipy.linalg.lu_factor(A0 + 0.5 * dt * J)
+                    need_j = False
+                delta = scipy.linalg.lu_solve(lu, R)
+                d = d - delta
+                step = np.abs(delta).max()
+                if step > _LAZY_THETA * prev:
+                    need_j = True  # convergence slowed: a fresh Jacobian at the next iterate
+                prev = step
             q1 = q + d
             if not ok or not np.all(np.isfinite(q1)) or np.abs(q1).max() > limit:
                 stable = False
@@ -919,4 +964,4 @@ class PolynomialROM:
             q = q1
             Qs[:, k + 1], Ps[:, k + 1] = q, p
         seconds = time.perf_counter() - t0
-        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable, backend)
+        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable, backend, n_jac)

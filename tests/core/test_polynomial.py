@@ -318,3 +318,25 @@ def test_absolute_tolerance_is_honoured_by_both_loops():
     for bad in (-1.0, float("nan"), "x"):
         with pytest.raises(InputError, match="atol"):
             rom.simulate(q0, np.zeros(r), dt, 3, atol=bad)
+
+
+@pytest.mark.parametrize("scheme", ["midpoint", "avf"])
+def test_lazy_jacobian_agrees_with_newton(scheme):
+    """Simplified Newton (jacobian='lazy'): the same states to the Newton tolerance, far fewer
+    Jacobians; the force-only evaluations use model.gradient; numpy loop only."""
+    r, n, dt = 4, 600, 0.01
+    pot, _ = _sos_potential(r, seed=31)
+    rng = np.random.default_rng(32)
+    rom = pl.PolynomialROM(pot, 0.02 * np.eye(r), rng.standard_normal((r, 1)))
+    u = np.sin(0.9 * dt * (np.arange(n) + 0.5))[None]
+    q0 = 0.4 * rng.standard_normal(r)
+    a = rom.simulate(q0, np.zeros(r), dt, n, u, scheme=scheme, tol=1e-12, backend="numpy")
+    b = rom.simulate(q0, np.zeros(r), dt, n, u, scheme=scheme, tol=1e-12, jacobian="lazy")
+    assert a.stable and b.stable and b.backend == "numpy"
+    assert a.jacobians == a.newton_iterations and b.jacobians < a.jacobians / 3
+    assert _rel(a.Qh, b.Qh) <= 1e-9
+    with pytest.raises(InputError, match="jacobian"):
+        rom.simulate(q0, np.zeros(r), dt, 3, jacobian="sometimes")
+    if compiled.available():
+        with pytest.raises(InputError, match="numpy loop only"):
+            rom.simulate(q0, np.zeros(r), dt, 3, jacobian="lazy", backend="numba")
