@@ -1,6 +1,6 @@
 """Black-box probes (dolfinx_lopinf.fem.probes) on the SVK cantilever: the Richardson
-accelerations equal the Galerkin ones V^T(-f(Vq) - C V v + b u) of the FOM, the error
-estimate bounds the error, a polynomial L-OpInf fit of them is the Galerkin reduced force,
+accelerations equal the Galerkin ones V^T(-f(Vq) - C V v + b u) of the FOM (to 1e-5; one
+step alone is far off), a polynomial L-OpInf fit of them is the Galerkin reduced force,
 and bad input is named."""
 
 import numpy as np
@@ -43,17 +43,17 @@ def test_probe_accelerations_are_the_galerkin_ones(setup):
     rng = np.random.default_rng(0)
     Q, Vel, U = probes.probe_points(Qh, Vh, 6, rng=rng, inputs_range=(0, 250))
     pd = probes.probe(cant.system, V, M, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
-                      step_size=1e-6)
+                      step_size=4e-6)
     exact = _galerkin(cant, V, Q, Vel, U)
     err = np.linalg.norm(pd.A - exact, axis=0) / np.linalg.norm(exact, axis=0)
-    assert err.max() < 1e-4, err
-    assert np.all(pd.error_estimate >= err), (pd.error_estimate, err)  # conservative here
+    assert err.max() < 1e-5, err
+    assert pd.error_estimate.max() < 1e-5  # the estimate agrees that the data are good
     # one step alone is far off (the Richardson extrapolation is what makes it exact)
     one = probes.probe(cant.system, V, M, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
-                       step_size=1e-6, levels=2)
+                       step_size=4e-6, levels=2)
     err2 = np.linalg.norm(one.A - exact, axis=0) / np.linalg.norm(exact, axis=0)
     assert err.max() < err2.max()
-    assert pd.fom_steps == 3 * Q.shape[1] and pd.summary()["samples"] == Q.shape[1]
+    assert pd.fom_steps == 5 * Q.shape[1] and pd.summary()["samples"] == Q.shape[1]
 
 
 def test_fit_of_probe_data_is_the_galerkin_reduced_force(setup):
@@ -63,12 +63,12 @@ def test_fit_of_probe_data_is_the_galerkin_reduced_force(setup):
     n = int(2 * pl.n_unknowns(r, 1)["total"] / r) + 10
     Q, Vel, U = probes.probe_points(Qh, Vh, n, rng=rng, inputs_range=(0, 250))
     pd = probes.probe(cant.system, V, M, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
-                      step_size=1e-6)
+                      step_size=4e-6)
     ops = pl.fit_polynomial(pd.data(), constraint="none")
     Qt = 1.2 * Qh[:, rng.integers(0, Qh.shape[1], 20)]  # unseen states, beyond the samples' scale
     F = V.T @ cant.internal_force(V @ Qt)
-    assert np.linalg.norm(ops.potential.gradient(Qt) - F) / np.linalg.norm(F) < 1e-4
-    assert np.linalg.norm(ops.B[:, 0] - V.T @ cant.load_vector()) / np.linalg.norm(ops.B) < 1e-4
+    assert np.linalg.norm(ops.potential.gradient(Qt) - F) / np.linalg.norm(F) < 1e-6
+    assert np.linalg.norm(ops.B[:, 0] - V.T @ cant.load_vector()) / np.linalg.norm(ops.B) < 1e-6
     assert np.linalg.eigvalsh(ops.C).min() > 0
 
 
