@@ -66,6 +66,21 @@ def test_ecsw_all_cells_is_the_full_force_and_fits_to_tol(setup):
         assert ge.n_cells_used == len(s.cells)
 
 
+def test_offset_state_and_cell_budget(setup):
+    """u0 shifts the linearisation point (f_r(q; u0 = V a) = f_r(q + a)); max_cells caps ECSW."""
+    cant, V, gf = setup
+    a, q = np.array([0.2, -0.1, 0.3]), np.array([0.1, 0.3, -0.2])
+    shifted = gn.GalerkinForce(cant.energy_form, cant.system.q, V, cant.state_map, u0=V @ a)
+    f, J = shifted.force_and_jacobian(q)
+    f0, J0 = gf.force_and_jacobian(q + a)
+    assert np.abs(f - f0).max() <= 1e-12 * np.abs(f0).max()
+    assert np.abs(J - J0).max() <= 1e-12 * np.abs(J0).max()
+    Qh = 0.4 * np.random.default_rng(3).standard_normal((3, 10))
+    s = gn.ecsw_sampling(cant.energy_form, cant.system.q, V, cant.state_map, Qh, tol=1e-12,
+                         max_cells=2)
+    assert len(s.cells) <= 2 and s.residual > 1e-12
+
+
 def test_galerkin_rom_of_svk_equals_its_polynomial_tensors():
     """On SVK the genuine Galerkin ROM (FOM assembly per Newton iterate) and the polynomial
     ROM with the exact reduced tensors integrate the same equations."""
