@@ -361,6 +361,12 @@ class MidpointIntegrator(_Closing):
         self.t = float(t0)
         self.steps_taken = 0
 
+    @property
+    def mass_matrix(self) -> "PETSc.Mat":
+        """The assembled mass matrix M (dof space, Dirichlet rows and columns replaced by the
+        identity) - what maps a velocity to the momentum p = M v this integrator steps."""
+        return self._mass
+
     def advance(self, q0: np.ndarray, p0: PETSc.Vec):
         """Black-box step: from (q0 local dofs, p0 PETSc Vec) return (q1 array, p1 Vec) copies,
         leaving the integrator's own state untouched."""

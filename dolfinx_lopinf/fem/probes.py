@@ -38,7 +38,8 @@ two digits at r = 4, 6, 8 on the cantilever (``demos/svk_cantilever.py``).
 
 This is the re-projection idea of Peherstorfer (2020) made exact for an implicit scheme by
 taking the step size to zero; :mod:`dolfinx_lopinf.studies.reprojection` is the fixed-step
-variant. Serial (the lifting uses the dense state-coordinate mass matrix).
+variant. Any number of ranks: the lifting and projection use the FOM's distributed mass
+matrix, the r-vectors are summed over ranks.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ import numpy as np
 
 from ..core import polynomial as pl
 from ..errors import InputError
+from ._dolfinx import MPI, PETSc
 from .fom import StateMap
 from .integrators import MidpointIntegrator
 from .lagrangian import LagrangianSystem
@@ -132,36 +134,38 @@ def _integrators(black_box, step_size, levels, petsc_options):
                      f"advance(q, p); got {type(black_box).__name__}")
 
 
-def probe(black_box, V: np.ndarray, M: np.ndarray, state_map: StateMap, Q: np.ndarray,
-          Vel: np.ndarray, inputs: np.ndarray | None = None, *, set_input=None,
-          step_size: float, levels: int = 5, petsc_options: dict | None = None) -> ProbeData:
+def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.ndarray,
+          inputs: np.ndarray | None = None, *, set_input=None, step_size: float, levels: int = 5,
+          petsc_options: dict | None = None) -> ProbeData:
     """Richardson-extrapolated Galerkin accelerations at the samples (see the module docstring).
+    Runs on any number of ranks (every rank passes the same arguments) with the serial result.
 
     Args:
         black_box: a :class:`LagrangianSystem` (midpoint integrators of step h / 2^k are made
-            for it) or a callable ``h -> integrator`` whose integrator has ``advance(q_dofs,
-            p_vec) -> (q1_dofs, p1_vec)``, a PETSc Vec ``p`` and a time ``t``.
-        V: (n, r) M-orthonormal basis in state coordinates; M: (n, n) mass in state coordinates.
-        state_map: the FOM's :class:`StateMap` (state = scale * dofs[order]).
+            for it) or a callable ``h -> integrator`` returning an integrator like
+            :class:`MidpointIntegrator`: ``advance(q_dofs, p_vec) -> (q1_dofs, p1_vec)``, its
+            momentum Vec ``p``, time ``t``, ``system`` and the mass matrix ``mass_matrix``.
+        V: (n, r) M-orthonormal basis in state coordinates (``lo.pod(..., weight=M)``), on
+            every rank. state_map: the FOM's :class:`StateMap` (state = scale * dofs[order]).
         Q, Vel: (r, N) reduced states and velocities; inputs: (m, N) or None.
         set_input: ``set_input(integrator, u)`` makes the next step's forcing the input u (m,);
-            required when ``inputs`` is given. Called before every step (also with zeros when
+            required when ``inputs`` is given. Called before every step (with an empty u when
             ``inputs`` is None and ``set_input`` is given).
         step_size: h (small against the stiff content; check ``error_estimate``).
-        levels: Richardson levels (h, h/2, ..., >= 2).
+        levels: Richardson levels (h, h/2, ..., h/2^(levels-1); >= 2).
     """
-    V, M = np.asarray(V, float), np.asarray(M, float)
+    V = np.asarray(V, float)
     Q, Vel = np.atleast_2d(np.asarray(Q, float)), np.atleast_2d(np.asarray(Vel, float))
-    n_state, r = V.shape
     problem = None
-    if M.shape != (n_state, n_state):
-        problem = f"M must be ({n_state}, {n_state}) like V's rows, got {M.shape}"
-    elif Q.shape[0] != r or Q.shape != Vel.shape:
-        problem = f"Q and Vel must both be (r = {r}, N), got {Q.shape} and {Vel.shape}"
+    if not isinstance(state_map, StateMap):
+        problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
+    elif V.ndim != 2 or V.shape[0] != len(state_map.order) or not np.all(np.isfinite(V)):
+        problem = (f"V must be a finite (n, r) array with n = {len(state_map.order)} state rows, got "
+                   f"shape {V.shape}")
+    elif Q.shape[0] != V.shape[1] or Q.shape != Vel.shape:
+        problem = f"Q and Vel must both be (r = {V.shape[1]}, N), got {Q.shape} and {Vel.shape}"
     elif not (np.all(np.isfinite(Q)) and np.all(np.isfinite(Vel))):
         problem = "Q or Vel contains NaN or inf"
-    elif not np.allclose(V.T @ M @ V, np.eye(r), atol=1e-8):
-        problem = "probing needs an M-orthonormal basis (V^T M V = I); use lo.pod(..., weight=M)"
     elif inputs is not None and set_input is None:
         problem = "inputs were given without set_input(integrator, u) to apply them"
     elif int(levels) < 2:
@@ -173,55 +177,88 @@ def probe(black_box, V: np.ndarray, M: np.ndarray, state_map: StateMap, Q: np.nd
     U = None
     if inputs is not None:
         U = np.atleast_2d(np.asarray(inputs, float))
-        if U.shape[1] != Q.shape[1]:
-            raise InputError(f"inputs must have N = {Q.shape[1]} columns, got {U.shape}")
+        if U.shape[1] != Q.shape[1] or not np.all(np.isfinite(U)):
+            raise InputError(f"inputs must be finite with N = {Q.shape[1]} columns, got {U.shape}")
     integrators, own = _integrators(black_box, float(step_size), int(levels), petsc_options)
-    comm = integrators[0].system.V.mesh.comm if hasattr(integrators[0], "system") else None
-    if comm is not None and comm.size > 1:
-        raise NotImplementedError("probing is serial (it lifts with the dense state-coordinate "
-                                  "mass matrix); run it on one rank")
     t0 = time.perf_counter()
     try:
-        raw = [_probe_level(integ, V, M, state_map, Q, Vel, U, set_input) for integ in integrators]
+        lift = _DofBasis(integrators[0], V, state_map)
+        raw = [_probe_level(integ, lift, Q, Vel, U, set_input) for integ in integrators]
     finally:
         if own:
             for integ in integrators:
                 integ.close()
     # Richardson: a(h) = a0 + a1 h + a2 h^2 + ...; with h_k = h / 2^k eliminate order by order
-    table = raw
-    prev = None
+    table, prev = raw, None
     for order in range(1, len(raw)):
         prev = table
         table = [(2**order * table[k + 1] - table[k]) / (2**order - 1) for k in range(len(table) - 1)]
     A = table[0]
-    last = prev[-1] if prev is not None else raw[-1]
-    est = np.linalg.norm(A - last, axis=0) / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    est = np.linalg.norm(A - prev[-1], axis=0) / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     return ProbeData(Q, Vel, U, A, est, float(step_size), int(levels), int(levels) * Q.shape[1],
                      time.perf_counter() - t0)
 
 
-def _probe_level(integ, V, M, state_map, Q, Vel, U, set_input):
+def mass_gram(integrator, V: np.ndarray, state_map: StateMap) -> np.ndarray:
+    """V^T M V (r, r) with the integrator's (distributed) mass matrix, V (n, r) in state
+    coordinates on every rank - e.g. to make a basis M-orthonormal on any number of ranks:
+    ``V @ np.linalg.inv(np.linalg.cholesky(G)).T``."""
+    return _DofBasis(integrator, np.asarray(V, float), state_map, check=False).G
+
+
+class _DofBasis:
+    """The basis in this rank's dofs: W (owned + ghost rows, r) for lifting, and the Gram
+    W^T M W (= V^T M V in state coordinates; summed over ranks) with the FOM's mass matrix."""
+
+    def __init__(self, integ, V, state_map, check=True):
+        space = integ.system.V
+        imap, bs = space.dofmap.index_map, space.dofmap.index_map_bs
+        n_blocks = imap.size_local + imap.num_ghosts
+        glob = (imap.local_to_global(np.arange(n_blocks, dtype=np.int32)).astype(np.int64)[:, None] * bs
+                + np.arange(bs)[None, :]).ravel()
+        self.W = np.ascontiguousarray(state_map.to_dofs(V)[glob])
+        self.n_owned = imap.size_local * bs
+        self.comm = space.mesh.comm
+        self.mass = integ.mass_matrix
+        self._x, self._y = self.mass.createVecs()
+        MW = np.column_stack([self.mass_times(self.W[:self.n_owned, j]) for j in range(V.shape[1])])
+        self.MW = MW  # (owned, r)
+        self.G = self.sum(self.W[:self.n_owned].T @ MW)
+        r = V.shape[1]
+        if check and not np.allclose(self.G, np.eye(r), atol=1e-8):
+            raise InputError("probing needs an M-orthonormal basis (V^T M V = I); use "
+                             "lo.pod(..., weight=M)")
+
+    def mass_times(self, x_owned):
+        self._x.array[:] = x_owned
+        self.mass.mult(self._x, self._y)
+        return self._y.array.copy()
+
+    def sum(self, local):
+        out = np.empty_like(local)
+        self.comm.Allreduce(np.ascontiguousarray(local), out, op=MPI.SUM)
+        return out
+
+
+def _probe_level(integ, lift, Q, Vel, U, set_input):
     h = integ.dt
-    order, scale = state_map.order, state_map.scale
-    n_dofs = len(order)
-    MV = M @ V
-    G = V.T @ MV  # V^T M V (= I to rounding; used exactly below)
+    n = lift.n_owned
     p0 = integ.p.duplicate()
     A = np.empty_like(Q)
     try:
         for j in range(Q.shape[1]):
-            u0 = V @ Q[:, j]
-            q_dofs = np.zeros(n_dofs)
-            q_dofs[order] = u0 / scale
-            p_dofs = np.zeros(n_dofs)
-            p_dofs[order] = (MV @ Vel[:, j]) * scale  # momentum is dual: p_dof = scale * p_state
-            p0.array[:] = p_dofs
+            u0 = lift.W @ Q[:, j]  # local dofs (owned and ghosts)
+            with p0.localForm() as loc:
+                loc.set(0.0)
+            p0.array[:] = lift.MW @ Vel[:, j]  # p0 = M W v (owned rows)
+            p0.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
             if set_input is not None:
                 set_input(integ, np.zeros(0) if U is None else U[:, j])
-            q1, p1 = integ.advance(q_dofs, p0)
+            q1, p1 = integ.advance(u0, p0)
             p1.destroy()
-            dq = MV.T @ (scale * q1[order] - u0)  # V^T M (u1 - u0), formed in the full space
-            A[:, j] = 2.0 / h * (dq / h - G @ Vel[:, j])
+            # W^T M (u1 - u0): the increment formed in the full space before projecting
+            dq = lift.sum(lift.MW.T @ (q1[:n] - u0[:n]))
+            A[:, j] = 2.0 / h * (dq / h - lift.G @ Vel[:, j])
     finally:
         p0.destroy()
     return A
