@@ -259,7 +259,9 @@ def test_infer_mechanical_rejects_unknown_solvers_naming_the_valid_ones():
 def test_infer_mechanical_takes_a_strategy_object_and_admm_is_a_real_path():
     data = _forced_data()
     auto = lo.infer_mechanical(*data)
-    obj = lo.infer_mechanical(*data, solver=lsq.PSDBlocks())
+    # Auto is PSDBlocks, which tries the active blocks alone only from r = ELIMINATE_FROM_R on
+    assert data[0].shape[0] < lsq.blocks.ELIMINATE_FROM_R
+    obj = lo.infer_mechanical(*data, solver=lsq.PSDBlocks(eliminate=False))
     assert np.array_equal(obj.K, auto.K) and np.array_equal(obj.B, auto.B)
     assert {k for k in auto.certificate if k != "seconds"} == {k for k in obj.certificate if k != "seconds"}
     admm = lo.infer_mechanical(*data, solver="admm")

@@ -14,6 +14,10 @@ from .lyapunov import EigenbasisADMM, Lyapunov
 from .problem import Problem, Strategy, symmetric_answer, symmetric_start
 
 
+#: :class:`Auto` tries the interior point on the active blocks alone from this r on
+ELIMINATE_FROM_R = 16
+
+
 class PSDBlocks(Strategy):
     """min f(Theta) = ||Theta L + Z||_F^2 over Theta = [S_1 .. S_b], S_k = S_k^T >= eps I.
 
@@ -74,6 +78,15 @@ class Auto(Strategy):
     not certified. One block (K): the Lyapunov minimiser if it is >= eps I, else
     :class:`EigenbasisADMM`. ``method="admm"`` skips the interior point and the Lyapunov
     shortcut: the ADMM strategies alone (the comparison path).
+
+    The interior point first tries the blocks whose symmetric minimiser is indefinite alone
+    (``PSDBlocks(eliminate=True)``) only from r = ``ELIMINATE_FROM_R`` on: the attempt
+    saves 7/8 of the Schur Cholesky per iteration, which pays only where that Cholesky is
+    the cost. Measured on the forced sets (1 BLAS thread), with the attempt against
+    without: r = 20 4.1 against 6.9 ms (compiled) and 5.9 against 12.8 ms (numpy); r = 4-8,
+    where it succeeds, 0.47 against 0.33 ms (compiled), 0.95 against 0.88 ms (numpy); r = 12
+    and 16, where it fails and the full run follows, 1.8 against 1.3 ms and 4.2 against 3.2 ms
+    (compiled), 3.5 against 2.6 ms (numpy).
     """
 
     def __init__(self, method: str = "auto", backend: str = "auto"):
@@ -83,7 +96,8 @@ class Auto(Strategy):
 
     def solve_blocks(self, problem: Problem):
         if problem.n_blocks > 1:
-            theta, cert = PSDBlocks(method=self.method, backend=self.backend).solve_blocks(problem)
+            theta, cert = PSDBlocks(method=self.method, backend=self.backend,
+                                    eliminate=problem.r >= ELIMINATE_FROM_R).solve_blocks(problem)
             if not cert.converged:
                 theta, cert = Barrier().solve_blocks(problem)
             return theta, cert
