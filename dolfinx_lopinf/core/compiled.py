@@ -41,6 +41,9 @@ JIT_ENV = "DOLFINX_LOPINF_JIT"
 
 _KERNELS: dict | None = None
 _COMPILE_SECONDS: float | None = None
+#: A full-Newton correction below this times max(|q|, |d|) ends a polynomial-ROM step: the
+#: iterate has converged to the rounding of the state (PolynomialROM.simulate; both loops).
+NEWTON_STALL = 16 * np.finfo(np.float64).eps
 
 
 def jit_disabled() -> bool:
@@ -540,8 +543,15 @@ def _poly_run(K, F2, F3, A0, Cm, BUT, q, p, dt, n_steps, avf, tol, atol, max_ite
                 stats[2] = -1
                 return
             _lu_solve(A, piv, R)
+            mdelta = 0.0
+            mstate = 0.0
             for a in range(r):
                 d[a] -= R[a]
+                mdelta = max(mdelta, abs(R[a]))
+                mstate = max(mstate, abs(q[a]), abs(d[a]))
+            if mdelta <= NEWTON_STALL * mstate:
+                ok = True  # the correction is below the state's rounding (see simulate)
+                break
         bad = not ok
         for a in range(r):
             x[a] = q[a] + d[a]
