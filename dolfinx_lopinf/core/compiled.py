@@ -39,8 +39,6 @@ BACKENDS = ("auto", "numpy", "numba")
 #: Environment variable that disables the JIT when set to 0 / false / no / off.
 JIT_ENV = "DOLFINX_LOPINF_JIT"
 
-_KERNELS: dict | None = None
-_COMPILE_SECONDS: float | None = None
 #: A full-Newton correction below this times max(|q|, |d|) ends a polynomial-ROM step: the
 #: iterate has converged to the rounding of the state (PolynomialROM.simulate; both loops).
 NEWTON_STALL = 16 * np.finfo(np.float64).eps
@@ -365,40 +363,75 @@ def jit(func, signature=None, **options):
     return numba.njit(*args, cache=False, **options)(func)
 
 
+class KernelSet:
+    """Named numba kernels of one module, compiled (or loaded from numba's cache) together on
+    first use. Each compiled kernel replaces the module global of its name, so kernels that
+    call one another call the compiled versions; ``order`` lists helpers before their callers.
+
+    Args:
+        namespace: the module's ``globals()``.  signatures: name -> numba signature.
+        fastmath: name -> fastmath flags (default {"contract"}: FMA contraction only).
+        order: compilation order (default: the signatures' order).
+        before: called once before compiling (e.g. another set's kernels, or externals).
+        unavailable: the message of the error raised when the JIT cannot be used.
+    """
+
+    def __init__(self, namespace, signatures, *, fastmath=None, order=None, before=None,
+                 unavailable="the compiled loops are unavailable"):
+        self._ns, self._signatures = namespace, signatures
+        self._fastmath = fastmath or {}
+        self._order = tuple(order or signatures)
+        self._before, self._unavailable = before, unavailable
+        self._kernels: dict | None = None
+        self.compile_seconds: float | None = None  # of the first kernels() in this process
+
+    def kernels(self) -> dict:
+        """The compiled kernels (compiled or loaded from the cache on the first call)."""
+        if self._kernels is None:
+            why = _numba_missing()
+            if why is not None:
+                raise InputError(f"{self._unavailable}: {why}")
+            if self._before is not None:
+                self._before()
+            t0 = time.perf_counter()
+            out = {}
+            for name in self._order:
+                out[name] = jit(self._ns[name], self._signatures[name],
+                                fastmath=self._fastmath.get(name, {"contract"}), error_model="numpy")
+                self._ns[name] = out[name]
+            self._kernels = out
+            self.compile_seconds = time.perf_counter() - t0
+        return self._kernels
+
+    def warm_up(self) -> float | None:
+        """Compile (or load) the kernels now: the seconds that took in this process (0.0 when
+        already done), or None when the JIT is unavailable or disabled. Call it before timing."""
+        if not available():
+            return None
+        if self._kernels is not None:
+            return 0.0
+        self.kernels()
+        return self.compile_seconds
+
+
+_ROM_KERNELS = KernelSet(globals(), _SIGNATURES, fastmath=_FASTMATH, order=_ORDER)
+
+
 def kernels() -> dict:
-    """The compiled kernels (compiled or loaded from the cache on the first call)."""
-    global _KERNELS, _COMPILE_SECONDS
-    if _KERNELS is None:
-        why = _numba_missing()
-        if why is not None:
-            raise InputError(f"the compiled loops are unavailable: {why}")
-        t0 = time.perf_counter()
-        g = globals()
-        out = {}
-        for name in _ORDER:
-            out[name] = jit(g[name], _SIGNATURES[name], fastmath=_FASTMATH.get(name, {"contract"}),
-                            error_model="numpy")
-            g[name] = out[name]
-        _KERNELS = out
-        _COMPILE_SECONDS = time.perf_counter() - t0
-    return _KERNELS
+    """The compiled ROM-loop kernels (compiled or loaded from the cache on the first call)."""
+    return _ROM_KERNELS.kernels()
 
 
 def warm_up() -> float | None:
-    """Compile (or load from numba's cache) every kernel now; returns the seconds that took
-    in this process (0.0 when already done), or None when the JIT is unavailable/disabled.
+    """Compile (or load from numba's cache) every ROM-loop kernel now; returns the seconds that
+    took in this process (0.0 when already done), or None when the JIT is unavailable/disabled.
     Call it before timing a first simulation."""
-    if not available():
-        return None
-    if _KERNELS is not None:
-        return 0.0
-    kernels()
-    return _COMPILE_SECONDS
+    return _ROM_KERNELS.warm_up()
 
 
 def compile_seconds() -> float | None:
     """Seconds the first :func:`kernels` call took in this process (None before it)."""
-    return _COMPILE_SECONDS
+    return _ROM_KERNELS.compile_seconds
 
 
 # --------------------------------------------------------------------------------------------
@@ -583,35 +616,17 @@ _POLY_SIGNATURES = {
                  "boolean, float64, float64, int64, float64, float64[:, ::1], float64[:, ::1], "
                  "int64[::1])",
 }
-_POLY_KERNELS: dict | None = None
-_POLY_COMPILE_SECONDS: float | None = None
+_POLY_KERNELS = KernelSet(globals(), _POLY_SIGNATURES, before=lambda: kernels(),
+                          unavailable="the compiled polynomial ROM loop is unavailable")
 
 
 def polynomial_kernels() -> dict:
     """The compiled polynomial-ROM kernels (after :func:`kernels`, whose LU they call);
     compiled or loaded from numba's cache on the first call."""
-    global _POLY_KERNELS, _POLY_COMPILE_SECONDS
-    if _POLY_KERNELS is None:
-        kernels()
-        t0 = time.perf_counter()
-        g = globals()
-        out = {}
-        for name in ("_poly_force", "_poly_run"):
-            out[name] = jit(g[name], _POLY_SIGNATURES[name], fastmath={"contract"},
-                            error_model="numpy")
-            g[name] = out[name]
-        _POLY_KERNELS = out
-        _POLY_COMPILE_SECONDS = time.perf_counter() - t0
-    return _POLY_KERNELS
+    return _POLY_KERNELS.kernels()
 
 
 def warm_up_polynomial() -> float | None:
     """:func:`warm_up` for the polynomial ROM's kernels: seconds spent compiling or loading
     them in this process (0.0 when already done), None when the JIT is unavailable."""
-    if not available():
-        return None
-    if _POLY_KERNELS is not None:
-        return 0.0
-    t0 = time.perf_counter()
-    polynomial_kernels()
-    return time.perf_counter() - t0
+    return _POLY_KERNELS.warm_up()

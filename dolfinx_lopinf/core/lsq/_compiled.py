@@ -20,8 +20,6 @@ timer and returns the seconds it took); later processes load them from numba's c
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
 from .. import compiled as _jit
@@ -30,8 +28,6 @@ from .. import compiled as _jit
 WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE = 1, 2, 4, 8, 16, 32
 STEP_FRACTION = 0.98  # the numpy path's (ipm.STEP_FRACTION)
 
-_KERNELS: dict | None = None
-_COMPILE_SECONDS: float | None = None
 _dpotrf = _dtrsv = None  # bound to LAPACK dpotrf and BLAS dtrsv by kernels()
 
 
@@ -486,40 +482,30 @@ _ORDER = ("_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_chol_solve
           "_is_pd_shifted", "_sturm", "_min_eig", "_max_step", "_iterate", "_setup")
 
 
+def _bind_externals():
+    g = globals()
+    ext = _externals()
+    g["_dpotrf"], g["_dtrsv"] = ext["dpotrf"], ext["dtrsv"]
+
+
+# no fast-math: the same operations in the same order as written (FMA contraction aside), like
+# the numpy path - except _FASTMATH's
+_IPM_KERNELS = _jit.KernelSet(globals(), _SIGNATURES, fastmath=_FASTMATH, order=_ORDER,
+                              before=_bind_externals,
+                              unavailable="the compiled interior point is unavailable")
+
+
 def kernels() -> dict:
     """The compiled kernels (compiled, or loaded from numba's cache, on the first call)."""
-    global _KERNELS, _COMPILE_SECONDS
-    if _KERNELS is None:
-        if not available():
-            raise RuntimeError("the compiled interior point is unavailable (numba missing or "
-                               f"{_jit.JIT_ENV}=0)")
-        t0 = time.perf_counter()
-        g = globals()
-        ext = _externals()
-        g["_dpotrf"], g["_dtrsv"] = ext["dpotrf"], ext["dtrsv"]
-        out = {}
-        for name in _ORDER:
-            # no fast-math: the same operations in the same order as written (FMA contraction
-            # aside), like the numpy path
-            out[name] = _jit.jit(g[name], _SIGNATURES[name], fastmath=_FASTMATH.get(name, {"contract"}),
-                                 error_model="numpy")
-            g[name] = out[name]
-        _KERNELS = out
-        _COMPILE_SECONDS = time.perf_counter() - t0
-    return _KERNELS
+    return _IPM_KERNELS.kernels()
 
 
 def warm_up() -> float | None:
     """Compile (or load from the cache) the kernels now; the seconds it took in this process
     (0.0 when already done), or None when the JIT is unavailable or disabled."""
-    if not available():
-        return None
-    if _KERNELS is not None:
-        return 0.0
-    kernels()
-    return _COMPILE_SECONDS
+    return _IPM_KERNELS.warm_up()
 
 
 def compile_seconds() -> float | None:
     """Seconds the first :func:`kernels` call took in this process (None before it)."""
-    return _COMPILE_SECONDS
+    return _IPM_KERNELS.compile_seconds
