@@ -451,7 +451,7 @@ def _error_vs_r(path, rows, cfg, a, *, title):
     """Tip error vs r per method (markers; a failed run - blow-up or Newton failure - drawn
     as an open marker on the top edge)."""
     plt = render._pyplot()
-    fig, ax = plt.subplots(figsize=(7.0, 3.8))
+    fig, ax = plt.subplots(figsize=(10.0, 3.8))
     rs = np.array(cfg["r_values"], float)
     markers = dict(zip(METHODS, "oPsD^v<x"))
     finite = [row["tip_error"] for row in rows if np.isfinite(row["tip_error"])]
@@ -469,7 +469,8 @@ def _error_vs_r(path, rows, cfg, a, *, title):
     ax.set_xticks(rs)
     ax.axhline(top, color="k", lw=0.6, ls=":")
     ax.text(rs[0], top * 1.15, "failed (blow-up / Newton)", fontsize=7)
-    render._finish(fig, ax, path, xlabel="r", ylabel="relative tip error", title=title)
+    render._finish(fig, ax, path, xlabel="r", ylabel="relative tip error", title=title,
+                   legend={"loc": "upper left", "bbox_to_anchor": (1.01, 1.0)})
 
 
 def _render(out, material, cfg, cant, snaps, basis, state_series, rows):

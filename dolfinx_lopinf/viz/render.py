@@ -29,13 +29,14 @@ def _pyplot():
     return plt
 
 
-def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str) -> Path:
-    """Label, grid, legend, save and close a one-axis matplotlib figure."""
+def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict | None = None) -> Path:
+    """Label, grid, legend (``legend``: extra ``ax.legend`` arguments, e.g. a place outside
+    the axes), save and close a one-axis matplotlib figure."""
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, **(legend or {}))
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     import matplotlib.pyplot as plt
