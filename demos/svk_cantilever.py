@@ -414,10 +414,34 @@ def main(argv=None):
         mm["render"] = _render(out, material, cfg, cant, runs[a_max][0], basis, state_series, rows)
         _print_table(material, rows, long_rows, cfg)
     metrics["linear_fom_seconds"] = lin_info["seconds"]
+    metrics.update(report_rows(metrics))
     metrics["seconds"] = time.perf_counter() - t_start
     harness.write_metrics(out, metrics)
     print(f"wrote {out / 'metrics.json'} ({metrics['seconds']:.0f} s)")
     return metrics
+
+
+def report_rows(metrics: dict) -> dict:
+    """The harness's speed-vs-error vocabulary for ``python -m dolfinx_lopinf.studies.report``:
+    SVK rows at the largest unseen amplitude (test_error = relative tip error; infer_seconds
+    = the fit plus, for the probe fits, the probes' FOM steps; failed runs left out) and the
+    FOM's seconds for that amplitude."""
+    svk = metrics["materials"].get("svk")
+    if not svk:
+        return {}
+    a = max(metrics["test_amplitudes"])
+    fits = {(f["method"], f["r"]): f for f in svk["fits"]}
+    roms = []
+    for row in svk["rows"]:
+        if row["amplitude"] != a or not np.isfinite(row["tip_error"]):
+            continue
+        fit = fits.get((row["method"], row["r"]), {})
+        infer = (fit.get("seconds") or 0.0) + (fit.get("probes") or {}).get("seconds", 0.0)
+        roms.append({"method": row["method"], "r": row["r"], "test_error": row["tip_error"],
+                     "rom_seconds": row["rom_seconds"], "rom_seconds_numpy": row["rom_seconds_numpy"],
+                     "rom_backend": row["rom_backend"], "infer_seconds": infer})
+    return {"roms": roms, "error": "tip (a = %g)" % a, "fom_seconds": svk["fom_seconds"][str(a)],
+            "n_dofs": svk["n_dofs"]}
 
 
 def _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long):

@@ -58,7 +58,7 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
 
     plt = _pyplot()
     rows = _rows(metrics)
-    fig, ax = plt.subplots(figsize=(6.8, 4.6))
+    fig, ax = plt.subplots(figsize=(10.5, 4.6))
     labels = sorted({p.label for p in rows})
     for i, label in enumerate(labels):
         sel = sorted((p for p in rows if p.label == label and p.error <= 1.0), key=lambda p: p.r)
@@ -74,7 +74,8 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
         ax.axvline(fom, color="k", ls="--", label=f"FOM {fom:.3g} s (same horizon as the ROMs)")
     _finish(fig, ax, path, xlabel="wall time [s]", ylabel="relative test error",
             title=f"{metrics['scene']}: speed against {metrics.get('error', 'state')} error "
-                  f"(n = {metrics.get('n_dofs')})")
+                  f"(n = {metrics.get('n_dofs')})",
+            legend={"loc": "upper left", "bbox_to_anchor": (1.01, 1.0)})  # beside the data
     lines = []
     for label in labels:
         best = min((p for p in rows if p.label == label), key=lambda p: p.error)

@@ -206,6 +206,9 @@ def test_demo_quick(tmp_path):
         if f["method"] == "poly_lopinf":
             assert f["min_eig_gram"] >= 0 and f["duality_gap"] < 1e-6
             assert f["excess_residual"] < 1e-6 and f["probes"]["error_estimate_max"] < 1e-5
+    # the report's vocabulary (python -m dolfinx_lopinf.studies.report): SVK rows at a_max
+    assert m["fom_seconds"] > 0 and {row["method"] for row in m["roms"]} >= {"poly_lopinf", "intrusive"}
+    assert all(np.isfinite(row["test_error"]) and row["infer_seconds"] >= 0 for row in m["roms"])
     for name in ("tip_svk", "error_vs_r_svk", "energy_svk", "deformed_svk"):
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000
 
