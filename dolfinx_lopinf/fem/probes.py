@@ -125,11 +125,16 @@ def probe_points(Qh: np.ndarray, Vh: np.ndarray, n: int, *, rng, spread: float =
 def _integrators(black_box, step_size, levels, petsc_options):
     steps = [step_size / 2**k for k in range(levels)]
     if isinstance(black_box, LagrangianSystem):
-        return [MidpointIntegrator(black_box, h, petsc_options=petsc_options,
-                                   prefix=f"lopinf_probe_{id(black_box)}_{k}_")
-                for k, h in enumerate(steps)], True
+        # the integrators' own unique option prefixes (the same on every rank)
+        return [MidpointIntegrator(black_box, h, petsc_options=petsc_options) for h in steps], True
     if callable(black_box):
-        return [black_box(h) for h in steps], False
+        made = [black_box(h) for h in steps]
+        missing = [a for a in ("advance", "p", "t", "dt", "system", "mass_matrix")
+                   if not hasattr(made[0], a)]
+        if missing:
+            raise InputError(f"the integrator black_box(h) returned lacks {', '.join(missing)} "
+                             "(see MidpointIntegrator)")
+        return made, False
     raise InputError("black_box must be a LagrangianSystem or a callable dt -> integrator with "
                      f"advance(q, p); got {type(black_box).__name__}")
 

@@ -101,3 +101,15 @@ def test_two_ranks_equal_serial(serial_and_parallel):
     # the accelerations come out of a nonlinear solve per step: equal well below their own
     # accuracy (~1e-7; measured 4e-10 apart)
     assert np.abs(a["A"] - b["A"]).max() <= 1e-7 * np.abs(a["A"]).max(), np.abs(a["A"] - b["A"]).max()
+
+
+def test_a_callable_black_box_is_checked(setup):
+    cant, M, V, Qh, Vh = setup
+    with pytest.raises(InputError, match="mass_matrix"):
+        probes.probe(lambda h: object(), V, cant.state_map, Qh[:, :2], Vh[:, :2], step_size=1e-6)
+    # a MidpointIntegrator factory works like the system itself
+    Q, Vel = Qh[:, :2], Vh[:, :2]
+    a = probes.probe(lambda h: lo.MidpointIntegrator(cant.system, h), V, cant.state_map, Q, Vel,
+                     step_size=4e-6, levels=3)
+    b = probes.probe(cant.system, V, cant.state_map, Q, Vel, step_size=4e-6, levels=3)
+    assert np.abs(a.A - b.A).max() <= 1e-12 * np.abs(b.A).max()
