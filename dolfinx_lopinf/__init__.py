@@ -5,6 +5,9 @@ Pipeline (each stage a plain object, usable alone):
     LagrangianSystem -> run (FOM) -> Snapshots -> pod (Basis) -> ddt.derivatives
       -> infer_mechanical (L-OpInf) -> LagrangianROM.simulate -> Basis.reconstruct
 
+and for a non-quadratic (polynomial) potential: pod -> probe (black-box FOM steps at lifted
+samples) -> fit_polynomial -> PolynomialROM.simulate.
+
 The numpy core (``ddt``, ``basis``, ``inference``, ``rom``, ``metrics``, ``snapshots``)
 imports without DOLFINx; the FOM layer (``LagrangianSystem``, ``MidpointIntegrator``,
 ``run``, ``galerkin_rom``) is loaded on first use.
@@ -25,6 +28,7 @@ from .core.ddt import derivatives, newmark_data, variational_data
 from .core.inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
                         infer_wave)
 from .core.metrics import energy_error, relative_error
+from .core.polynomial import PolynomialROM, fit_polynomial, point_data
 from .core.rom import LagrangianROM, Trajectory, WaveROM, load_rom, save_rom
 from .core.selection import Choice, choose_r
 from .core.snapshots import Snapshots
@@ -43,6 +47,9 @@ _LAZY = {
     "write_vtx": "fem.vtx",
     "states_to_function": "fem.vtx",
     "state_rows": "fem.vtx",
+    "probe": "fem.probes",
+    "probe_points": "fem.probes",
+    "GalerkinForce": "fem.galerkin_nonlinear",
 }
 
 
@@ -56,4 +63,5 @@ def __getattr__(name):
 
 __all__ = ["ddt", "errors", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
-           "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom", *_LAZY]
+           "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom",
+           "fit_polynomial", "PolynomialROM", "point_data", *_LAZY]
