@@ -535,34 +535,11 @@ def _render(out, material, cfg, cant, snaps, basis, state_series, rows):
 
 def _side_by_side(path, grid, frames, *, titles, title):
     """One row per time, one column per label; side view (x right, z up), true scale."""
-    pv = render._pyvista()
-    labels = list(frames[0])
-    plotter = pv.Plotter(shape=(len(frames), len(labels)), off_screen=True,
-                         window_size=(440 * len(labels), 230 * len(frames)), border=False)
-    clim = (0.0, max(np.linalg.norm(u, axis=1).max() for f in frames for u in f.values()))
-    outline = grid.extract_surface(algorithm=None).extract_feature_edges()
-    for i, frame in enumerate(frames):
-        for j, label in enumerate(labels):
-            plotter.subplot(i, j)
-            g = grid.copy()
-            g.point_data["u"] = frame[label]
-            g.point_data["|u| [m]"] = np.linalg.norm(frame[label], axis=1)
-            plotter.add_mesh(outline, color="grey", line_width=1, opacity=0.6)  # undeformed
-            plotter.add_mesh(g.warp_by_vector("u", factor=1.0), scalars="|u| [m]", cmap="viridis",
-                             clim=clim, show_scalar_bar=(i == len(frames) - 1 and j == 0),
-                             scalar_bar_args={"title": "displacement [m]", "vertical": False,
-                                              "position_x": 0.25, "position_y": 0.05,
-                                              "width": 0.5, "height": 0.12, "fmt": "%.2f"})
-            plotter.add_text(f"{label}, {titles[i]}", font_size=8, position="upper_left")
-            if i == len(frames) - 1 and j == len(labels) - 1:
-                plotter.add_text(title, font_size=7, position="lower_right")
-            plotter.camera_position = [(0.5, -2.6, -0.08), (0.5, 0.0, -0.08), (0, 0, 1)]
-            plotter.camera.parallel_projection = True
-            plotter.camera.parallel_scale = 0.5
-    path = Path(path)
-    plotter.screenshot(str(path))
-    plotter.close()
-    return path
+    return render.deformed_side_by_side(
+        path, grid, frames, magnify=1.0, titles=titles, title=title, panel=(440, 230),
+        camera=[(0.5, -2.6, -0.08), (0.5, 0.0, -0.08), (0, 0, 1)], parallel_scale=0.5,
+        scalar_bar={"title": "displacement [m]", "vertical": False, "position_x": 0.25,
+                    "position_y": 0.05, "width": 0.5, "height": 0.12, "fmt": "%.2f"})
 
 
 def _print_table(material, rows, long_rows, cfg):

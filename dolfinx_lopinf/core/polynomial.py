@@ -269,12 +269,7 @@ def midpoint_data(Qh: np.ndarray, dt: float, inputs_mid: np.ndarray | None = Non
     Qh = _matrix(Qh, "Qh")
     if Qh.shape[1] < 3:
         raise InputError(f"Qh needs at least 3 time samples (columns), got {Qh.shape[1]}")
-    try:
-        dt = float(dt)
-    except (TypeError, ValueError):
-        dt = float("nan")
-    if not (np.isfinite(dt) and dt > 0):
-        raise InputError(f"dt must be a positive finite number, got {dt!r}")
+    dt = _positive(dt, "dt")
     mid = 0.5 * (Qh[:, 1:] + Qh[:, :-1])
     D2 = (Qh[:, 2:] - 2 * Qh[:, 1:-1] + Qh[:, :-2]) / dt**2
     D1 = (Qh[:, 2:] - Qh[:, :-2]) / (2 * dt)
@@ -320,6 +315,17 @@ def _concat(datas) -> MidpointData:
     cat = lambda name: np.hstack([getattr(d, name) for d in datas])  # noqa: E731
     return MidpointData(cat("minus"), cat("plus"), cat("D1"), cat("D2"),
                         cat("Ubar") if datas[0].Ubar is not None else None, datas[0].dt)
+
+
+def _positive(x, name) -> float:
+    """x as a positive finite float, else an InputError naming ``name``."""
+    try:
+        value = float(x)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise InputError(f"{name} must be a positive finite number, got {x!r}")
+    return value
 
 
 def _matrix(A, name):
@@ -846,12 +852,7 @@ class PolynomialROM:
 
         if scheme not in SCHEMES:
             raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-        try:
-            dt = float(dt)
-        except (TypeError, ValueError):
-            dt = float("nan")
-        if not (np.isfinite(dt) and dt > 0):
-            raise InputError(f"dt must be a positive finite number, got {dt!r}")
+        dt = _positive(dt, "dt")
         if isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 0:
             raise InputError(f"n_steps must be a non-negative integer, got {n_steps!r}")
         try:

@@ -181,8 +181,14 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
     return _finish(fig, ax, path, xlabel="wall time [s]", ylabel="relative test error", title=title)
 
 
+#: the fishtail's view: from above, lateral bending in the image plane
+TOP_VIEW = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]
+
+
 def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, titles=None,
-                          clim=None) -> Path:
+                          clim=None, camera=None, parallel_scale: float | None = None,
+                          panel=(420, 360), title: str | None = None,
+                          scalar_bar: dict | None = None) -> Path:
     """3D deformed shapes, one row per frame, one column per label (e.g. FOM | ROM).
 
     Args:
@@ -190,13 +196,20 @@ def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, tit
         frames: list of {label: (n_points, 3) displacement}; one row each.
         magnify: displacement magnification.
         titles: optional row titles (e.g. times).
+        camera: pyvista camera position (default :data:`TOP_VIEW`); ``parallel_scale`` makes
+            the projection parallel with that scale (true proportions across panels).
+        panel: (width, height) of one panel in pixels.  title: a caption (lower right).
+        scalar_bar: the colour bar's ``scalar_bar_args``; it is then drawn in the last row's
+            first panel (default: in the first row's last panel, pyvista's placement).
     """
     pv = _pyvista()
     labels = list(frames[0])
     plotter = pv.Plotter(shape=(len(frames), len(labels)), off_screen=True,
-                         window_size=(420 * len(labels), 360 * len(frames)), border=False)
+                         window_size=(panel[0] * len(labels), panel[1] * len(frames)), border=False)
     if clim is None:
         clim = (0.0, max(np.linalg.norm(u, axis=1).max() for f in frames for u in f.values()))
+    outline = grid.extract_surface(algorithm=None).extract_feature_edges()
+    bar_at = (len(frames) - 1, 0) if scalar_bar is not None else (0, len(labels) - 1)
     for i, frame in enumerate(frames):
         for j, label in enumerate(labels):
             plotter.subplot(i, j)
@@ -204,13 +217,17 @@ def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, tit
             g.point_data["u"] = frame[label]
             g.point_data["|u| [m]"] = np.linalg.norm(frame[label], axis=1)
             warped = g.warp_by_vector("u", factor=magnify)
-            plotter.add_mesh(grid.extract_surface(algorithm=None).extract_feature_edges(), color="grey",
-                             line_width=1, opacity=0.5)  # undeformed outline
+            plotter.add_mesh(outline, color="grey", line_width=1, opacity=0.5)  # undeformed outline
             plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim,
-                             show_scalar_bar=(i == 0 and j == len(labels) - 1))
+                             show_scalar_bar=(i, j) == bar_at, scalar_bar_args=scalar_bar or {})
             text = label if titles is None else f"{label}  {titles[i]}"
-            plotter.add_text(text, font_size=9, position="upper_left")
-            plotter.camera_position = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]  # top view: lateral bending
+            plotter.add_text(text, font_size=9 if scalar_bar is None else 8, position="upper_left")
+            if title and i == len(frames) - 1 and j == len(labels) - 1:
+                plotter.add_text(title, font_size=7, position="lower_right")
+            plotter.camera_position = camera or TOP_VIEW
+            if parallel_scale is not None:
+                plotter.camera.parallel_projection = True
+                plotter.camera.parallel_scale = parallel_scale
     path = Path(path)
     plotter.screenshot(str(path))
     plotter.close()

@@ -60,19 +60,8 @@ def _chol_inv(A, S, Lw):
     """S = R^-1 for the lower Cholesky factor R of the r x r block A (read: its lower
     triangle); False (S undefined) when A is not positive definite, as LAPACK decides it."""
     r = A.shape[0]
-    for j in range(r):
-        s = A[j, j]
-        for k in range(j):
-            s -= Lw[j, k] * Lw[j, k]
-        if not s > 0.0:
-            return False
-        d = np.sqrt(s)
-        Lw[j, j] = d
-        for i in range(j + 1, r):
-            t = A[i, j]
-            for k in range(j):
-                t -= Lw[i, k] * Lw[j, k]
-            Lw[i, j] = t / d
+    if not _is_pd_shifted(A, 0.0, Lw):  # R in Lw
+        return False
     for j in range(r):  # S = R^-1, lower, column by column
         for i in range(r):
             S[i, j] = 0.0
@@ -197,7 +186,8 @@ def _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, c
 
 
 def _is_pd_shifted(W, c, Lw):
-    """Whether W + c I is positive definite (a Cholesky of its lower triangle succeeds)."""
+    """Whether W + c I is positive definite (a Cholesky of its lower triangle succeeds; the
+    factor is left in Lw's lower triangle)."""
     r = W.shape[0]
     for j in range(r):
         s = W[j, j] + c
@@ -478,8 +468,8 @@ _SIGNATURES = {
 # the Householder reduction's dot products summed in SIMD lanes (an equally exact order)
 _FASTMATH = {"_min_eig": {"contract", "reassoc"}}
 # helpers first: a kernel is compiled against the compiled helpers it calls
-_ORDER = ("_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_chol_solve", "_direction",
-          "_is_pd_shifted", "_sturm", "_min_eig", "_max_step", "_iterate", "_setup")
+_ORDER = ("_is_pd_shifted", "_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_chol_solve",
+          "_direction", "_sturm", "_min_eig", "_max_step", "_iterate", "_setup")
 
 
 def _bind_externals():
