@@ -575,88 +575,76 @@ def _gram_factor(c: np.ndarray, r: int, cp) -> np.ndarray:
     return Q * np.sqrt(ev)
 
 
-def _solve_cvxpy(R, z, norms, r, m, damping, constraint, eps, eps_gram, sig, p_pot):
-    try:
-        import cvxpy as cp
-        from cvxpy.reductions.solvers.solver_inverse_data import SolverInverseData
-    except ImportError as exc:  # pragma: no cover
-        raise ImportError("constrained polynomial fits need cvxpy and clarabel: "
-                          "pip install cvxpy clarabel") from exc
+def _scaled_psd(cp, n, d):
+    """A symmetric variable X = D Xh D (D = diag(d)): (Xh, X); X >= 0 <=> Xh >= 0."""
+    Xh = cp.Variable((n, n), symmetric=True)
+    return Xh, cp.multiply(np.outer(d, d), Xh)
+
+
+def _potential_block(cp, constraint, r, norms, x_ls, p_pot, eps, eps_gram, sig):
+    """The potential's monomial coefficients as cvxpy expressions (balanced units), their
+    constraints, and the Gram matrix G ("sos") or the quartic P ("quartic") expression.
+
+    Every unknown enters in column-normalised units x = norms * theta (O(1) for Clarabel); a
+    PSD variable is scaled by a congruence: a diagonal one, D_a = norms[column of its diagonal
+    monomial]^(-1/2), or for G by L with L L^T a Gram matrix of the unconstrained potential."""
     nK, n3, n4 = comb(r + 1, 2), comb(r + 2, 3), comb(r + 3, 4)
-    nC = nK if damping else 0
-    # Every unknown enters in column-normalised units x = norms * theta (O(1) for Clarabel);
-    # a PSD matrix variable X is scaled by a diagonal congruence X = D Xh D with D_a =
-    # norms[column of its diagonal monomial]^(-1/2), which keeps X >= 0 <=> Xh >= 0.
-    zn = max(np.linalg.norm(z), 1e-300)
     t2 = monomials(r, 2)
     diag2 = {int(i): j for j, (i, k) in enumerate(t2) if i == k}
-    idx4 = {tuple(t): j for j, t in enumerate(monomials(r, 4))}
-    pair_col = [p_pot - n4 + idx4[tuple(sorted((i, i, k, k)))] for i, k in t2]
     dK = norms[[diag2[i] for i in range(r)]] ** -0.5
-    dZ = norms[pair_col] ** -0.5
-
-    def scaled(n, d):
-        Xh = cp.Variable((n, n), symmetric=True)
-        return Xh, cp.multiply(np.outer(d, d), Xh)
-
-    cons = []
-    G = P = None
-    x_ls = scipy.linalg.solve_triangular(R, z)  # the unconstrained answer (normalised units)
     if constraint == "sos":
-        # G = L Gh L^T with L L^T a PSD Gram of the unconstrained potential: the optimum then
-        # sits near Gh = I, well inside the cone. The diagonal congruence alone (dK, dZ) left
-        # Clarabel at "Solved" 4 orders above the optimum (5e-3 vs 1e-7 relative residual on
-        # exact Galerkin data of the SVK cantilever).
+        # G = L Gh L^T: the optimum then sits near Gh = I, well inside the cone. The diagonal
+        # congruence alone left Clarabel at "Solved" 4 orders above the optimum (5e-3 vs 1e-7
+        # relative residual on exact Galerkin data of the SVK cantilever).
         L = _gram_factor(x_ls[:p_pot] / norms[:p_pot], r, cp)
         Li = np.linalg.inv(L)
         Gh = cp.Variable((len(L), len(L)), symmetric=True)
         G = L @ Gh @ L.T
-        M2, M3, M4 = gram_maps(r)
         vecG = cp.vec(G, order="C")
-        pot = cp.hstack([M2 @ vecG, M3 @ vecG, M4 @ vecG])
-        cons.append(Gh >> eps_gram * (Li @ Li.T))
-        cons.append(2 * G[:r, :r] >> eps * np.diag(sig**2))
+        pot = cp.hstack([M @ vecG for M in gram_maps(r)])
+        return pot, [Gh >> eps_gram * (Li @ Li.T), 2 * G[:r, :r] >> eps * np.diag(sig**2)], G, None
+    Kh, Kv = _scaled_psd(cp, r, dK)
+    c2 = cp.hstack([(0.5 if i == k else 1.0) * Kv[i, k] for i, k in t2])
+    c3 = cp.multiply(1.0 / norms[nK:nK + n3], cp.Variable(n3))
+    cons, P = [Kh >> eps * np.diag(sig**2 * dK ** -2.0)], None
+    if constraint == "quartic":
+        idx4 = {tuple(t): j for j, t in enumerate(monomials(r, 4))}
+        pair_col = [p_pot - n4 + idx4[tuple(sorted((i, i, k, k)))] for i, k in t2]
+        Ph, P = _scaled_psd(cp, nK, norms[pair_col] ** -0.5)
+        _, _, M4 = gram_maps(r)
+        n = r + nK  # z^T (P/2) z: G22 = P / 2, the quartic block of the Gram map
+        idx = (np.arange(r, n)[:, None] * n + np.arange(r, n)[None, :]).reshape(-1)
+        c4 = 0.5 * (M4[:, idx] @ cp.vec(P, order="C"))
+        cons.append(Ph >> 0)
     else:
-        Kh, Kv = scaled(r, dK)
-        c2 = cp.hstack([(0.5 if i == k else 1.0) * Kv[i, k] for i, k in t2])
-        c3 = cp.multiply(1.0 / norms[nK:nK + n3], cp.Variable(n3))
-        if constraint == "quartic":
-            s = nK
-            Ph, P = scaled(s, dZ)
-            _, _, M4 = gram_maps(r)
-            # z^T (P/2) z: G22 = P / 2, the quartic block of the Gram map
-            n = r + s
-            idx = (np.arange(r, n)[:, None] * n + np.arange(r, n)[None, :]).reshape(-1)
-            c4 = 0.5 * (M4[:, idx] @ cp.vec(P, order="C"))
-            cons.append(Ph >> 0)
-        else:
-            c4 = cp.multiply(1.0 / norms[nK + n3:p_pot], cp.Variable(n4))
-        pot = cp.hstack([c2, c3, c4])
-        cons.append(Kh >> eps * np.diag(sig**2 * dK ** -2.0))
-    parts = [cp.multiply(norms[:p_pot], pot)]
-    Cv = None
-    if damping and constraint == "sos":  # C = LC Chh LC^T, LC LC^T = the unconstrained C (floored)
+        c4 = cp.multiply(1.0 / norms[nK + n3:p_pot], cp.Variable(n4))
+    return cp.hstack([c2, c3, c4]), cons, None, P
+
+
+def _damping_block(cp, constraint, r, norms, x_ls, p_pot, eps, sig):
+    """C as a cvxpy expression (>= eps I), its balanced-unit part of x and its constraint:
+    congruence-scaled by the unconstrained C for "sos", diagonally otherwise."""
+    nC = comb(r + 1, 2)
+    t2 = monomials(r, 2)
+    if constraint == "sos":  # C = LC Chh LC^T, LC LC^T = the unconstrained C (floored)
         w, Qc = np.linalg.eigh(_sym_from_upper(x_ls[p_pot:p_pot + nC] / norms[p_pot:p_pot + nC], r))
         LC = Qc * np.sqrt(np.maximum(np.abs(w), 1e-6 * np.abs(w).max() + 1e-300))
         Chh = cp.Variable((r, r), symmetric=True)
         Cv = LC @ Chh @ LC.T
-        parts.append(cp.multiply(norms[p_pot:p_pot + nC], cp.hstack([Cv[i, j] for i, j in t2])))
-        cons.append(Cv >> eps * np.diag(sig**2))
-    elif damping:
+        con = Cv >> eps * np.diag(sig**2)
+    else:
+        diag2 = {int(i): j for j, (i, k) in enumerate(t2) if i == k}
         dC = norms[[p_pot + diag2[i] for i in range(r)]] ** -0.5
-        Ch, Cv = scaled(r, dC)
-        cvec = cp.hstack([Cv[i, j] for i, j in t2])
-        parts.append(cp.multiply(norms[p_pot:p_pot + nC], cvec))
-        cons.append(Ch >> eps * np.diag(sig**2 * dC ** -2.0))
-    Bv = None
-    if m:
-        Bx = cp.Variable(r * m)
-        Bv = cp.multiply(1.0 / norms[p_pot + nC:], Bx)
-        parts.append(Bx)
-    x = cp.hstack(parts)
-    # the residual norm, a second-order cone (conditioned like R, not like R^T R)
-    objective = cp.norm(R @ x - z, 2) / zn
-    prob = cp.Problem(cp.Minimize(objective), cons)
+        Ch, Cv = _scaled_psd(cp, r, dC)
+        con = Ch >> eps * np.diag(sig**2 * dC ** -2.0)
+    part = cp.multiply(norms[p_pot:p_pot + nC], cp.hstack([Cv[i, j] for i, j in t2]))
+    return part, Cv, con
+
+
+def _clarabel(cp, prob) -> dict:
+    """Solve ``prob`` with Clarabel (:data:`CLARABEL_OPTIONS`); its certificate."""
+    from cvxpy.reductions.solvers.solver_inverse_data import SolverInverseData
+
     t0 = time.perf_counter()
     data, chain, inverse = prob.get_problem_data(cp.CLARABEL)
     raw = chain.solver.solve_via_data(data, False, False, dict(CLARABEL_OPTIONS))
@@ -668,27 +656,48 @@ def _solve_cvxpy(R, z, norms, r, m, damping, constraint, eps, eps_gram, sig, p_p
     gap = abs(raw.obj_val - raw.obj_val_dual)
     if prob.status != "optimal" and gap > 1e-6 * max(abs(raw.obj_val), 1e-300) + 1e-10:
         warnings.warn(f"Clarabel returned {prob.status} with duality gap {gap:.2e}; see the "
-                      "certificate", SolverWarning, stacklevel=3)
-    info = {"solver": "cvxpy-clarabel", "status": prob.status, "clarabel_status": str(raw.status),
-            "iterations": int(raw.iterations), "primal_objective": float(raw.obj_val),
-            "dual_objective": float(raw.obj_val_dual), "r_prim": float(raw.r_prim),
-            "r_dual": float(raw.r_dual), "solve_seconds": seconds}
-    info["duality_gap"] = float(gap)
-    info["relative_gap"] = float(gap / max(abs(prob.value), abs(raw.obj_val_dual), 1e-300))
-    info["objective"] = float(prob.value)
+                      "certificate", SolverWarning, stacklevel=4)
     # ||R x - z|| of the compressed problem is the excess over the unconstrained optimum's
     # residual (the QR's constant part is dropped), relative to ||z||
-    info["excess_residual"] = float(prob.value)
+    return {"solver": "cvxpy-clarabel", "status": prob.status, "clarabel_status": str(raw.status),
+            "iterations": int(raw.iterations), "primal_objective": float(raw.obj_val),
+            "dual_objective": float(raw.obj_val_dual), "r_prim": float(raw.r_prim),
+            "r_dual": float(raw.r_dual), "solve_seconds": seconds, "duality_gap": float(gap),
+            "relative_gap": float(gap / max(abs(prob.value), abs(raw.obj_val_dual), 1e-300)),
+            "objective": float(prob.value), "excess_residual": float(prob.value)}
+
+
+def _solve_cvxpy(R, z, norms, r, m, damping, constraint, eps, eps_gram, sig, p_pot):
+    """min ||R x - z|| / ||z|| over the constrained potential, C and B (balanced units):
+    (theta, Gram matrix or None, certificate)."""
+    try:
+        import cvxpy as cp
+    except ImportError as exc:  # pragma: no cover
+        raise ImportError("constrained polynomial fits need cvxpy and clarabel: "
+                          "pip install cvxpy clarabel") from exc
+    x_ls = scipy.linalg.solve_triangular(R, z)  # the unconstrained answer (normalised units)
+    nC = comb(r + 1, 2) if damping else 0
+    pot, cons, G, P = _potential_block(cp, constraint, r, norms, x_ls, p_pot, eps, eps_gram, sig)
+    parts, Cv, Bv = [cp.multiply(norms[:p_pot], pot)], None, None
+    if damping:
+        part, Cv, con = _damping_block(cp, constraint, r, norms, x_ls, p_pot, eps, sig)
+        parts.append(part)
+        cons.append(con)
+    if m:
+        Bx = cp.Variable(r * m)
+        Bv = cp.multiply(1.0 / norms[p_pot + nC:], Bx)
+        parts.append(Bx)
+    # the residual norm, a second-order cone (conditioned like R, not like R^T R)
+    prob = cp.Problem(cp.Minimize(cp.norm(R @ cp.hstack(parts) - z, 2) / max(np.linalg.norm(z), 1e-300)),
+                      cons)
+    info = _clarabel(cp, prob)
     Gv = None
     if constraint == "sos":
-        Gv = 0.5 * (G.value + G.value.T)
-        w, Q = np.linalg.eigh(Gv)
+        w, Q = np.linalg.eigh(0.5 * (G.value + G.value.T))
         info["min_eig_gram_raw"] = float(w.min())
         Gv = (Q * np.maximum(w, 0.0)) @ Q.T  # exactly PSD (up to rounding of this product)
         info["min_eig_gram"] = float(np.linalg.eigvalsh(Gv).min())
-        M2, M3, M4 = gram_maps(r)
-        vec = Gv.reshape(-1)
-        pot_v = np.concatenate([M2 @ vec, M3 @ vec, M4 @ vec])
+        pot_v = np.concatenate([M @ Gv.reshape(-1) for M in gram_maps(r)])
     else:
         pot_v = np.asarray(pot.value, float)
         if constraint == "quartic":
@@ -848,8 +857,6 @@ class PolynomialROM:
         equal to rounding) or ``"auto"`` (numba when it imports, ``DOLFINX_LOPINF_JIT`` is not
         0 and the model is polynomial; else numpy). Compilation happens before the timer.
         """
-        from . import compiled
-
         if scheme not in SCHEMES:
             raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
         dt = _positive(dt, "dt")
@@ -875,13 +882,32 @@ class PolynomialROM:
         if jacobian not in ("fresh", "lazy"):
             raise InputError(f"jacobian must be 'fresh' or 'lazy', got {jacobian!r}")
         lazy = jacobian == "lazy"
-        requested = backend
-        backend = compiled.resolve_backend(backend)
+        backend = self._backend(backend, lazy)
+        Qs = np.full((r, n_steps + 1), np.nan)
+        Ps = np.full((r, n_steps + 1), np.nan)
+        Qs[:, 0], Ps[:, 0] = q, p
+        Cm = np.zeros((r, r)) if self.C is None else self.C
+        A0 = np.eye(r) / dt + 0.5 * Cm
+        limit = blowup * max(np.abs(q).max(), np.abs(p).max() * dt, 1e-300) + blowup
+        run = self._run_numba if backend == "numba" else self._run_numpy
+        t0 = time.perf_counter()
+        iters, n_jac, stable = run(q, p, dt, n_steps, BU if U is not None else None, A0, Cm, scheme,
+                                   float(tol), atol, int(max_iter), float(limit), Qs, Ps, lazy)
+        seconds = time.perf_counter() - t0
+        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable, backend, n_jac)
+
+    def _backend(self, requested, lazy) -> str:
+        """The loop that runs: numba when asked for (or "auto" and available) and the model is
+        polynomial and the Jacobian fresh; numpy otherwise (a named error when "numba" was
+        asked for explicitly and cannot run). Compiles the kernels outside any timer."""
+        from . import compiled
+
+        backend = compiled.resolve_backend(requested)
         if backend == "numba" and lazy:
             if requested == "numba":
                 raise InputError("jacobian='lazy' runs in the numpy loop only (the compiled loop's "
                                  "polynomial Jacobian is cheap); pass backend='auto' or 'numpy'")
-            backend = "numpy"
+            return "numpy"
         if backend == "numba":
             if self._tensors is None:
                 self._tensors = polynomial_tensors(self.model)
@@ -890,60 +916,58 @@ class PolynomialROM:
                     raise InputError("backend='numba' compiles the polynomial ROM for a "
                                      "PolynomialPotential or PolynomialForce; this model is a "
                                      f"{type(self.model).__name__} - pass backend='auto' or 'numpy'")
-                backend = "numpy"
-            else:
-                compiled.polynomial_kernels()  # compile / load from the cache outside the timer
-        Qs = np.full((r, n_steps + 1), np.nan)
-        Ps = np.full((r, n_steps + 1), np.nan)
-        Qs[:, 0], Ps[:, 0] = q, p
-        I = np.eye(r)
-        Cm = np.zeros((r, r)) if self.C is None else self.C
-        A0 = I / dt + 0.5 * Cm
-        limit = blowup * max(np.abs(q).max(), np.abs(p).max() * dt, 1e-300) + blowup
-        if backend == "numba":
-            K, F2, F3 = self._tensors
-            BUT = np.ascontiguousarray(BU.T) if U is not None else np.empty((0, r))
-            stats = np.zeros(3, dtype=np.int64)
-            c = np.ascontiguousarray
-            t0 = time.perf_counter()
-            compiled.polynomial_kernels()["_poly_run"](
-                c(K), c(F2), c(F3), c(A0), c(Cm, dtype=float), BUT, q, p, dt, n_steps,
-                scheme == "avf", float(tol), atol, int(max_iter), float(limit), Qs, Ps, stats)
-            seconds = time.perf_counter() - t0
-            if stats[2] < 0:
-                raise np.linalg.LinAlgError(f"Singular matrix (the reduced Newton matrix at step "
-                                            f"{int(stats[0]) + 1})")
-            return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, int(stats[1]),
-                                 bool(stats[2] == 1), backend, int(stats[1]))
+                return "numpy"
+            compiled.polynomial_kernels()  # compile / load from the cache outside the timer
+        return backend
+
+    def _run_numba(self, q, p, dt, n_steps, BU, A0, Cm, scheme, tol, atol, max_iter, limit, Qs,
+                   Ps, lazy):
+        """The compiled loop (same residual, update and stopping tests as :meth:`_run_numpy`)."""
+        from . import compiled
+
+        K, F2, F3 = self._tensors
+        BUT = np.ascontiguousarray(BU.T) if BU is not None else np.empty((0, self.r))
+        stats = np.zeros(3, dtype=np.int64)
+        c = np.ascontiguousarray
+        compiled.polynomial_kernels()["_poly_run"](
+            c(K), c(F2), c(F3), c(A0), c(Cm, dtype=float), BUT, q, p, dt, n_steps,
+            scheme == "avf", tol, atol, max_iter, limit, Qs, Ps, stats)
+        if stats[2] < 0:
+            raise np.linalg.LinAlgError(f"Singular matrix (the reduced Newton matrix at step "
+                                        f"{int(stats[0]) + 1})")
+        return int(stats[1]), int(stats[1]), bool(stats[2] == 1)
+
+    def _scheme_force(self, q, d, scheme, fresh):
+        """g(q0, q1 = q0 + d) of the scheme and (when ``fresh``) its Jacobian in d."""
         fj = self.model.force_and_jacobian
+        if scheme == "midpoint":
+            if fresh:
+                g, J = fj(q + 0.5 * d)
+                return g, 0.5 * J
+            return self._force_only(q + 0.5 * d), None
+        if fresh:
+            g1, J1 = fj(q + _GAUSS[0] * d)
+            g2, J2 = fj(q + _GAUSS[1] * d)
+            return 0.5 * (g1 + g2), 0.5 * (_GAUSS[0] * J1 + _GAUSS[1] * J2)
+        return 0.5 * (self._force_only(q + _GAUSS[0] * d) + self._force_only(q + _GAUSS[1] * d)), None
+
+    def _force_only(self, x):
         f_only = getattr(self.model, "force", None) or getattr(self.model, "gradient", None)
-        if f_only is None:
-            f_only = lambda x: fj(x)[0]  # noqa: E731
-        iters, n_jac, stable = 0, 0, True
-        lu = None
-        need_j = True
+        return f_only(x) if f_only is not None else self.model.force_and_jacobian(x)[0]
+
+    def _run_numpy(self, q, p, dt, n_steps, BU, A0, Cm, scheme, tol, atol, max_iter, limit, Qs,
+                   Ps, lazy):
+        """The reference loop; returns (Newton iterations, Jacobians formed, stable)."""
+        iters, n_jac = 0, 0
+        lu, need_j = None, True
         d = dt * p
-        t0 = time.perf_counter()
         for k in range(n_steps):
-            rhs = p + (0.5 * dt * BU[:, k] if U is not None else 0.0)
-            ok = False
-            prev = np.inf
+            half_input = 0.5 * dt * BU[:, k] if BU is not None else 0.0
+            rhs = p + half_input
+            ok, prev = False, np.inf
             for _ in range(max_iter):
                 fresh = not lazy or need_j or lu is None
-                if scheme == "midpoint":
-                    if fresh:
-                        g, J = fj(q + 0.5 * d)
-                        J = 0.5 * J
-                    else:
-                        g = f_only(q + 0.5 * d)
-                else:
-                    if fresh:
-                        g1, J1 = fj(q + _GAUSS[0] * d)
-                        g2, J2 = fj(q + _GAUSS[1] * d)
-                        J = 0.5 * (_GAUSS[0] * J1 + _GAUSS[1] * J2)
-                    else:
-                        g1, g2 = f_only(q + _GAUSS[0] * d), f_only(q + _GAUSS[1] * d)
-                    g = 0.5 * (g1 + g2)
+                g, J = self._scheme_force(q, d, scheme, fresh)
                 Ad = A0 @ d
                 R = Ad + 0.5 * dt * g - rhs
                 size = np.abs(Ad).max() + 0.5 * dt * np.abs(g).max() + np.abs(rhs).max()
@@ -973,10 +997,8 @@ class PolynomialROM:
                 prev = step
             q1 = q + d
             if not ok or not np.all(np.isfinite(q1)) or np.abs(q1).max() > limit:
-                stable = False
-                break
-            p = d / dt - 0.5 * Cm @ d - 0.5 * dt * g + (0.5 * dt * BU[:, k] if U is not None else 0.0)
+                return iters, n_jac, False
+            p = d / dt - 0.5 * Cm @ d - 0.5 * dt * g + half_input
             q = q1
             Qs[:, k + 1], Ps[:, k + 1] = q, p
-        seconds = time.perf_counter() - t0
-        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable, backend, n_jac)
+        return iters, n_jac, True
