@@ -23,7 +23,7 @@ HAVE_DOLFINX = importlib.util.find_spec("dolfinx") is not None
 PERTURB = float(os.environ.get("LOPINF_TEST_PERTURB", "0") or 0)
 #: the numerical core's entry points whose array arguments are perturbed
 PERTURBED_ENTRY_POINTS = ("infer_mechanical", "infer_opinf", "infer_wave", "infer_output", "pod",
-                          "gram_data")
+                          "gram_data", "point_data", "midpoint_data")
 
 
 def _perturbed(a):
