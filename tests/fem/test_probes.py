@@ -52,10 +52,26 @@ def test_probe_accelerations_are_the_galerkin_ones(setup):
     assert pd.error_estimate.max() < 1e-5  # the estimate agrees that the data are good
     # one step alone is far off (the Richardson extrapolation is what makes it exact)
     one = probes.probe(cant.system, V, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
-                       step_size=4e-6, levels=2)
+                       step_size=4e-6, levels=2, step_tol=None)
     err2 = np.linalg.norm(one.A - exact, axis=0) / np.linalg.norm(exact, axis=0)
     assert err.max() < err2.max()
-    assert pd.fom_steps == 5 * Q.shape[1] and pd.summary()["samples"] == Q.shape[1]
+    assert pd.summary()["samples"] == Q.shape[1]
+    assert pd.fom_steps == 5 * (Q.shape[1] + len(pd.step_search) * min(6, Q.shape[1]))
+    assert pd.step_search[0][0] == 4e-6 and pd.step_search[0][1] <= 1e-6  # no refinement needed
+
+
+def test_the_step_search_refines_a_too_large_step(setup):
+    """From h = 1e-4 (estimate ~1e-2 on this mesh) the search divides h by 4 until the
+    estimate meets 1e-6, and the data are then as accurate as from a good h."""
+    cant, M, V, Qh, Vh = setup
+    rng = np.random.default_rng(3)
+    Q, Vel, U = probes.probe_points(Qh, Vh, 3, rng=rng, inputs_range=(0, 250))
+    pd = probes.probe(cant.system, V, cant.state_map, Q, Vel, U, set_input=cant.set_probe_input,
+                      step_size=1e-4)
+    hs = [h for h, _ in pd.step_search]
+    assert hs[0] == 1e-4 and len(hs) > 1 and pd.step_size < 1e-4 and pd.step_search[-1][1] <= 1e-6
+    exact = _galerkin(cant, V, Q, Vel, U)
+    assert (np.linalg.norm(pd.A - exact, axis=0) / np.linalg.norm(exact, axis=0)).max() < 1e-5
 
 
 def test_fit_of_probe_data_is_the_galerkin_reduced_force(setup):
