@@ -230,10 +230,13 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
 def _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_input):
     """(Richardson accelerations, per-sample estimate) with steps h, h/2, ..., h/2^(levels-1)."""
     integrators, own = _integrators(black_box, h, int(levels), petsc_options)
+    lift = None
     try:
         lift = _DofBasis(integrators[0], V, state_map)
         raw = [_probe_level(integ, lift, Q, Vel, U, set_input) for integ in integrators]
     finally:
+        if lift is not None:
+            lift.close()
         if own:
             for integ in integrators:
                 integ.close()
@@ -250,7 +253,11 @@ def mass_gram(integrator, V: np.ndarray, state_map: StateMap) -> np.ndarray:
     """V^T M V (r, r) with the integrator's (distributed) mass matrix, V (n, r) in state
     coordinates on every rank - e.g. to make a basis M-orthonormal on any number of ranks:
     ``V @ np.linalg.inv(np.linalg.cholesky(G)).T``."""
-    return _DofBasis(integrator, np.asarray(V, float), state_map, check=False).G
+    basis = _DofBasis(integrator, np.asarray(V, float), state_map, check=False)
+    try:
+        return basis.G
+    finally:
+        basis.close()
 
 
 class _DofBasis:
@@ -273,8 +280,16 @@ class _DofBasis:
         self.G = self.sum(self.W[:self.n_owned].T @ MW)
         r = V.shape[1]
         if check and not np.allclose(self.G, np.eye(r), atol=1e-8):
+            self.close()
             raise InputError("probing needs an M-orthonormal basis (V^T M V = I); use "
                              "lo.pod(..., weight=M)")
+
+    def close(self):
+        """Destroy the work vectors now, on every rank together: left to the garbage
+        collector, PETSc's collective destroy runs at different times on different ranks."""
+        for vec in (self._x, self._y):
+            vec.destroy()
+        self.mass = None
 
     def mass_times(self, x_owned):
         self._x.array[:] = x_owned
