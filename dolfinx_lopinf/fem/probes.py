@@ -44,6 +44,7 @@ matrix, the r-vectors are summed over ranks.
 
 from __future__ import annotations
 
+import gc
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -240,6 +241,13 @@ def _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_
         if own:
             for integ in integrators:
                 integ.close()
+            # the integrators hold reference cycles (the SNES residual callback) and dolfinx
+            # vectors wrapping PETSc Vecs, whose destroy is collective: collect them here, at
+            # the same point on every rank, not whenever each rank's garbage collector runs
+            # (a 2-rank probe test hung in the full test suite, twice, after the step search
+            # began to make and drop integrators mid-run)
+            integrators = None
+            gc.collect()
     # Richardson: a(h) = a0 + a1 h + a2 h^2 + ...; with h_k = h / 2^k eliminate order by order
     table, prev = raw, None
     for order in range(1, len(raw)):
