@@ -64,6 +64,7 @@ import numpy as np
 import scipy.linalg
 
 from ..errors import InputError, SolverWarning
+from ._checks import as_real_array, check_matrix, check_positive
 from .compiled import NEWTON_STALL
 
 CONSTRAINTS = ("none", "spd", "quartic", "sos")
@@ -266,16 +267,16 @@ class MidpointData:
 def midpoint_data(Qh: np.ndarray, dt: float, inputs_mid: np.ndarray | None = None) -> MidpointData:
     """Data of the midpoint relation from reduced states Qh (r, K) at every step dt and the
     inputs at the half steps, (m, K-1): u(t_{k+1/2}) for k = 0 .. K-2 (or None)."""
-    Qh = _matrix(Qh, "Qh")
+    Qh = check_matrix(Qh, "Qh")
     if Qh.shape[1] < 3:
         raise InputError(f"Qh needs at least 3 time samples (columns), got {Qh.shape[1]}")
-    dt = _positive(dt, "dt")
+    dt = check_positive(dt, "dt")
     mid = 0.5 * (Qh[:, 1:] + Qh[:, :-1])
     D2 = (Qh[:, 2:] - 2 * Qh[:, 1:-1] + Qh[:, :-2]) / dt**2
     D1 = (Qh[:, 2:] - Qh[:, :-2]) / (2 * dt)
     Ubar = None
     if inputs_mid is not None:
-        U = _matrix(np.atleast_2d(np.asarray(inputs_mid, dtype=float)), "inputs_mid")
+        U = check_matrix(np.atleast_2d(as_real_array(inputs_mid, "inputs_mid")), "inputs_mid")
         if U.shape[1] != Qh.shape[1] - 1:
             raise InputError(f"inputs_mid must have K - 1 = {Qh.shape[1] - 1} columns (the half "
                              f"steps t_(k+1/2)), got shape {U.shape}")
@@ -289,13 +290,13 @@ def point_data(Q: np.ndarray, V: np.ndarray, A: np.ndarray, inputs: np.ndarray |
     (r, N); inputs (m, N) or None) - e.g. the probe accelerations of
     :func:`dolfinx_lopinf.fem.probes.probe` - in the form :func:`fit_polynomial` takes (both
     midpoints are the point itself)."""
-    Q, V, A = (_matrix(X, name) for X, name in ((Q, "Q"), (V, "V"), (A, "A")))
+    Q, V, A = (check_matrix(X, name) for X, name in ((Q, "Q"), (V, "V"), (A, "A")))
     if not (Q.shape == V.shape == A.shape):
         raise InputError(f"Q, V and A must have the same shape (r, N), got {Q.shape}, {V.shape}, "
                          f"{A.shape}")
     U = None
     if inputs is not None:
-        U = _matrix(np.atleast_2d(np.asarray(inputs, dtype=float)), "inputs")
+        U = check_matrix(np.atleast_2d(as_real_array(inputs, "inputs")), "inputs")
         if U.shape[1] != Q.shape[1]:
             raise InputError(f"inputs must have N = {Q.shape[1]} columns, got shape {U.shape}")
     return MidpointData(Q, Q, V, A, U, 0.0)
@@ -315,29 +316,6 @@ def _concat(datas) -> MidpointData:
     cat = lambda name: np.hstack([getattr(d, name) for d in datas])  # noqa: E731
     return MidpointData(cat("minus"), cat("plus"), cat("D1"), cat("D2"),
                         cat("Ubar") if datas[0].Ubar is not None else None, datas[0].dt)
-
-
-def _positive(x, name) -> float:
-    """x as a positive finite float, else an InputError naming ``name``."""
-    try:
-        value = float(x)
-    except (TypeError, ValueError):
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise InputError(f"{name} must be a positive finite number, got {x!r}")
-    return value
-
-
-def _matrix(A, name):
-    try:
-        A = np.asarray(A, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a real array") from None
-    if A.ndim != 2:
-        raise InputError(f"{name} must be a 2-D array (rows, time), got shape {A.shape}")
-    if not np.all(np.isfinite(A)):
-        raise InputError(f"{name} contains NaN or inf")
-    return A
 
 
 # -- the fit --------------------------------------------------------------------------------
@@ -859,7 +837,7 @@ class PolynomialROM:
         """
         if scheme not in SCHEMES:
             raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-        dt = _positive(dt, "dt")
+        dt = check_positive(dt, "dt")
         if isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 0:
             raise InputError(f"n_steps must be a non-negative integer, got {n_steps!r}")
         try:

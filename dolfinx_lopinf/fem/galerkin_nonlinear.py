@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._dolfinx import MPI, dolfinx, ufl
+from ..core._checks import check_positive
 from ..core.hyper import nnls_tolerance
 from ..errors import InputError
 from .fom import StateMap
@@ -316,12 +317,7 @@ def ecsw_sampling(energy, u, basis, state_map: StateMap, Qh, *, u0=None, tol: fl
     """ECSW cells and weights fitting the reduced force at the training states Qh (r, K)
     to relative residual ``tol`` (see the module docstring). Collective; the same sampling
     (canonical cell numbers) on every rank and for any number of ranks."""
-    try:
-        tol = float(tol)
-    except (TypeError, ValueError):
-        tol = float("nan")
-    if not (np.isfinite(tol) and tol > 0):
-        raise InputError(f"tol must be a positive number, got {tol!r}")
+    tol = check_positive(tol, "tol")
     t0 = time.perf_counter()
     G_local, canon = cell_force_matrix(energy, u, basis, state_map, Qh, u0=u0)
     comm = u.function_space.mesh.comm

@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core import polynomial as pl
+from ..core._checks import check_int, check_positive
 from ..errors import InputError, LOpInfWarning, StepFailedError
 from ._dolfinx import MPI, PETSc
 from .fom import StateMap
@@ -174,6 +175,9 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
     """
     V = np.asarray(V, float)
     Q, Vel = np.atleast_2d(np.asarray(Q, float)), np.atleast_2d(np.asarray(Vel, float))
+    levels = check_int(levels, "levels (Richardson needs two step sizes)", minimum=2)
+    step_size = check_positive(step_size, "step_size")
+    step_tol = None if step_tol is None else check_positive(step_tol, "step_tol")
     problem = None
     if not isinstance(state_map, StateMap):
         problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
@@ -186,12 +190,6 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
         problem = "Q or Vel contains NaN or inf"
     elif inputs is not None and set_input is None:
         problem = "inputs were given without set_input(integrator, u) to apply them"
-    elif int(levels) < 2:
-        problem = f"levels must be >= 2 (Richardson needs two step sizes), got {levels}"
-    elif not (np.isfinite(step_size) and step_size > 0):
-        problem = f"step_size must be a positive number, got {step_size!r}"
-    elif step_tol is not None and not (np.isfinite(step_tol) and step_tol > 0):
-        problem = f"step_tol must be a positive number or None, got {step_tol!r}"
     if problem:
         raise InputError(problem)
     U = None
@@ -200,7 +198,7 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
         if U.shape[1] != Q.shape[1] or not np.all(np.isfinite(U)):
             raise InputError(f"inputs must be finite with N = {Q.shape[1]} columns, got {U.shape}")
     t0 = time.perf_counter()
-    h, search = float(step_size), []
+    h, search = step_size, []
     pilot = np.arange(min(PILOT_SAMPLES, Q.shape[1]))
     while step_tol is not None:
         # refine h on a few samples until the Richardson estimate meets step_tol; stop where
@@ -224,13 +222,13 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
                           f"{step_tol:.1e}) at h = {h:.3g} after {len(search)} tries {search}; the "
                           "data are no more accurate than that", LOpInfWarning, stacklevel=2)
     A, est = _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_input)
-    steps = int(levels) * (Q.shape[1] + len(search) * len(pilot))
-    return ProbeData(Q, Vel, U, A, est, h, int(levels), steps, time.perf_counter() - t0, search)
+    steps = levels * (Q.shape[1] + len(search) * len(pilot))
+    return ProbeData(Q, Vel, U, A, est, h, levels, steps, time.perf_counter() - t0, search)
 
 
 def _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_input):
     """(Richardson accelerations, per-sample estimate) with steps h, h/2, ..., h/2^(levels-1)."""
-    integrators, own = _integrators(black_box, h, int(levels), petsc_options)
+    integrators, own = _integrators(black_box, h, levels, petsc_options)
     lift = None
     try:
         lift = _DofBasis(integrators[0], V, state_map)
