@@ -89,6 +89,13 @@ class StateMap:
         dofs[self.order] = states / self.scale[:, None] if states.ndim == 2 else states / self.scale
         return dofs
 
+    def to_local_dofs(self, V, states: np.ndarray) -> np.ndarray:
+        """States (n, K) or (n,) as this rank's local dof rows of V: owned, then ghosts
+        (the layout of ``Function.x.array``); ``states`` on every rank."""
+        imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
+        blocks = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
+        return self.to_dofs(states)[(blocks.astype(np.int64)[:, None] * bs + np.arange(bs)[None, :]).ravel()]
+
     def operator_to_state(self, A: np.ndarray) -> np.ndarray:
         """A dof-space bilinear form matrix (n, n) expressed in state coordinates:
         S^-T A S^-1 where state = S dofs."""

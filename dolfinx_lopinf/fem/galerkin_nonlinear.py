@@ -118,19 +118,15 @@ class _Lift:
         if basis.ndim != 2 or basis.shape[0] != n or not np.all(np.isfinite(basis)):
             raise InputError(f"basis must be a finite (n, r) array with n = {n} state rows (on "
                              f"every rank), got shape {basis.shape}")
-        imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
-        n_blocks = imap.size_local + imap.num_ghosts
-        glob = (imap.local_to_global(np.arange(n_blocks, dtype=np.int32)).astype(np.int64)[:, None] * bs
-                + np.arange(bs)[None, :]).ravel()
-        self.W = np.ascontiguousarray(state_map.to_dofs(basis)[glob])  # (local dofs, r)
+        self.W = np.ascontiguousarray(state_map.to_local_dofs(V, basis))  # (local dofs, r)
         if u0 is None:
-            self.u0 = np.zeros(len(glob))
+            self.u0 = np.zeros(len(self.W))
         else:
             u0 = np.asarray(u0, dtype=float).reshape(-1)
             if u0.shape != (n,) or not np.all(np.isfinite(u0)):
                 raise InputError(f"u0 must be a finite state vector of length {n}, got shape {u0.shape}")
-            self.u0 = state_map.to_dofs(u0)[glob]
-        self.n_owned = imap.size_local * bs
+            self.u0 = state_map.to_local_dofs(V, u0)
+        self.n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.r = basis.shape[1]
 
     def set(self, fun, q, rows=None):

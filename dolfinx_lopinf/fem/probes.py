@@ -272,12 +272,8 @@ class _DofBasis:
 
     def __init__(self, integ, V, state_map, check=True):
         space = integ.system.V
-        imap, bs = space.dofmap.index_map, space.dofmap.index_map_bs
-        n_blocks = imap.size_local + imap.num_ghosts
-        glob = (imap.local_to_global(np.arange(n_blocks, dtype=np.int32)).astype(np.int64)[:, None] * bs
-                + np.arange(bs)[None, :]).ravel()
-        self.W = np.ascontiguousarray(state_map.to_dofs(V)[glob])
-        self.n_owned = imap.size_local * bs
+        self.W = np.ascontiguousarray(state_map.to_local_dofs(space, V))
+        self.n_owned = space.dofmap.index_map.size_local * space.dofmap.index_map_bs
         self.comm = space.mesh.comm
         self.mass = integ.mass_matrix
         self._x, self._y = self.mass.createVecs()
