@@ -154,7 +154,9 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     # polynomial L-OpInf from black-box probes: one FOM midpoint step of h .. h/16 from lifted
     # samples (V q, M V v) with the input set, Richardson-extrapolated to the Galerkin
     # acceleration (fem/probes.py) - data without the closure of projected trajectories
-    Vh_train = np.hstack([_velocities(basis.project(runs[a][0].Q), dt) for a in cfg["train_amps"]])
+    # velocities by central differences per trajectory (one-sided at its ends)
+    Vh_train = np.hstack([np.gradient(basis.project(runs[a][0].Q), dt, axis=1)
+                          for a in cfg["train_amps"]])
     n_samples = int(PROBES_PER_UNKNOWN * pl.n_unknowns(r, 1)["total"] / r) + 10
     Qs, Vs, Us = probes.probe_points(Qh_train, Vh_train, n_samples, rng=rng,
                                      inputs_range=(0.0, max(cfg["train_amps"])))
@@ -221,11 +223,6 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
           f"intrusive force misfit {imisfit:.1e}, ECSW {len(sampling.cells)} of "
           f"{sampling.n_cells} cells (residual {sampling.residual:.1e})")
     return models, fits, galerkin
-
-
-def _velocities(Qh, dt):
-    """Central differences (one-sided at the ends) of reduced states (r, K)."""
-    return np.gradient(Qh, dt, axis=1)
 
 
 def _simulate(method, rom, *args, atol=0.0, **kwargs):
