@@ -304,3 +304,50 @@ def test_both_active_benchmark_data_is_certified_with_both_blocks_on_the_constra
     assert all(rank < 6 for rank in cert["face_ranks"])  # Kh and Ch both have eigenvalues at eps
     for S in (ops.K, ops.C):
         assert np.array_equal(S, S.T) and np.linalg.eigvalsh(S).min() >= 1e-8
+
+
+# -- the face multipliers of the certificate -----------------------------------------------
+
+def test_face_multipliers_give_a_sound_bound_at_any_feasible_point():
+    """dual_gap with face ranks is a bound: at feasible points around the certified optimum
+    (on the face, off it into the interior, with the right and the wrong ranks) the gap it
+    certifies is never below the true one, (f(x) - f*) / f(x)."""
+    problem, _ = _problem(r=5, seed=3).without_free()
+    theta, cert = lsq.InteriorPoint().solve(problem)
+    assert cert.converged
+    ix, f_star = problem.index, problem.objective(theta)
+    x_star = ix.vech(theta.reshape(problem.r, problem.n_blocks, problem.r).transpose(1, 0, 2))
+    rng = np.random.default_rng(0)
+    checked = 0
+    for t in range(40):
+        S = ix.blocks(x_star) + rng.uniform(0, 1e-3) * linalg.sym(rng.standard_normal(
+            (problem.n_blocks, problem.r, problem.r))) * (t % 4 != 0)
+        w, Q = np.linalg.eigh(S - EPS * np.eye(problem.r))
+        x = ix.vech(linalg.from_eig(np.maximum(w, 0.0) + (t % 3) * 1e-6, Q)) + ix.x_eps(EPS)
+        true = (problem.objective_x(x) - f_star) / problem.objective_x(x)
+        for ranks in (cert.face_ranks, [problem.r, problem.r], [0, 0], [2, 4]):
+            gap, _ = problem.dual_gap(x, ranks=ranks)
+            assert gap >= true - 1e-12
+            checked += 1
+    assert checked == 160
+
+
+# held-out data (seeds the benchmark does not use) on which the interior point stalled at
+# m mu / f ~ 1e-8: before the face multipliers the first two fell back to ADMM (46-49 ms)
+# and the last two ran through ADMM into the barrier, uncertified (195-394 ms)
+STALLED = [("mixed", 12, 10000, 1), ("mixed", 4, 10000, 3), ("rigid", 12, 10000, 6),
+           ("mixed", 4, 10000, 15)]
+
+
+@pytest.mark.parametrize("kind, r, n, seed", STALLED)
+def test_interior_point_certifies_held_out_data_where_it_stalls(kind, r, n, seed):
+    from dolfinx_lopinf.studies import benchmark
+
+    data = benchmark.active_data(kind, r, n, seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", lo.errors.SolverWarning)
+        ops = lo.infer_mechanical(*data, eps=EPS)
+    c = ops.certificate
+    assert c["solver"] == "ipm" and c["converged"] and c["duality_gap"] <= 1e-8
+    ref = lo.infer_mechanical(*data, eps=EPS, solver=lsq.PSDBlocks(method="admm"))
+    assert ops.certificate["objective"] <= ref.certificate["objective"] * (1 + 1e-8)

@@ -108,7 +108,7 @@ class FaceNewton:
                 return None
             x, step, change = stepped
             fx += change
-            gap, _ = p.dual_gap(x)
+            gap, _ = p.dual_gap(x, ranks=ranks, enough=self.gap_tol)
             self.trace.append((step, gap))
             if gap <= self.gap_tol:
                 break
@@ -332,7 +332,7 @@ class FaceADMM(Strategy):
         record = {"iteration": it, "ranks": ranks, "a_min": a_min}
         if a_min <= 0:
             return record, None
-        gap, lam_min = problem.dual_gap(xp)
+        gap, lam_min = problem.dual_gap(xp, ranks=ranks, enough=self.gap_tol)
         record.update(polish_gap=gap, lam_min=lam_min)
         if gap <= self.gap_tol or (not problem.spd.ok and lam_min >= -self.kkt_tol):
             return record, (xp, gap, lam_min, True)
@@ -342,4 +342,5 @@ class FaceADMM(Strategy):
         record.update(newton=None if refined is None else refined[1])
         if refined is None or refined[1] > self.gap_tol:
             return record, None
-        return record, (refined[0], *problem.dual_gap(refined[0]), True)
+        return record, (refined[0], *problem.dual_gap(refined[0], ranks=ranks, enough=self.gap_tol),
+                        True)

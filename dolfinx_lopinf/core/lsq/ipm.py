@@ -76,6 +76,15 @@ def _max_step(S: np.ndarray, *dP: np.ndarray) -> float:
     return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
 
 
+def _face_ranks(X: np.ndarray, Lam: np.ndarray) -> list:
+    """Rank of each X_k: the eigen-directions where X exceeds Lambda (their product is ~mu,
+    strict complementarity sends one of them to 0; the scaling makes the two comparable:
+    Lambda ~ grad f ~ H' x')."""
+    wX, VX = np.linalg.eigh(X)
+    wL = np.einsum("kia,kij,kja->ka", VX, Lam, VX)
+    return [int(v) for v in (wX > wL).sum(axis=1)]
+
+
 class _Stop(Exception):
     """The interior point cannot go on (the message says why)."""
 
@@ -158,13 +167,8 @@ class PrimalDualIPM:
             if (m * mu <= gap_tol * f_ref or a < 1e-3) and self._certified(cert, certify, x, Lam,
                                                                           gap_tol, a):
                 break
-        # rank of each X_k: the eigen-directions where X exceeds Lambda (their product is ~mu,
-        # strict complementarity sends one of them to 0; the scaling makes the two comparable:
-        # Lambda ~ grad f ~ H' x')
-        wX, VX = np.linalg.eigh(X)
-        wL = np.einsum("kia,kij,kja->ka", VX, Lam, VX)
         cert.details["mu"] = mu
-        cert.face_ranks = [int(v) for v in (wX > wL).sum(axis=1)]
+        cert.face_ranks = _face_ranks(X, Lam)
         return self.x_eps + self.T * x, cert
 
     def _run_compiled(self, cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below):
@@ -224,8 +228,11 @@ class PrimalDualIPM:
         return x, X, np.linalg.inv(X) * (0.1 * f_ref / self.m)
 
     def _certified(self, cert, certify, x, Lam, gap_tol, a) -> bool:
-        """Ask ``certify`` for the gap; True when the loop should end."""
-        gap, lam_min = certify(self.x_eps + self.T * x, Lam / (self.dsc[:, :, None] * self.dsc[:, None, :]))
+        """Ask ``certify`` for the gap (with the face the iterate shows); True when the loop
+        should end."""
+        gap, lam_min = certify(self.x_eps + self.T * x,
+                               Lam / (self.dsc[:, :, None] * self.dsc[:, None, :]),
+                               _face_ranks(self.ix.blocks(x), Lam))
         if not np.isfinite(gap):
             cert.details["stopped"] = "no certificate for this point"
             return True
@@ -332,14 +339,16 @@ class _ActiveBlocks:
         """The eliminated blocks of a full x are >= eps I."""
         return np.linalg.eigvalsh(self.problem.index.blocks(xf)[self.feasible]).min() >= self.problem.eps
 
-    def certify(self, xa, lam_a):
+    def certify(self, xa, lam_a, ranks_a):
         xf = self.full(xa)
         if not self.eliminated_ok(xf):
             return np.nan, np.nan
         p = self.problem
         lam = np.zeros((p.n_blocks, p.r, p.r))
         lam[~self.feasible] = lam_a
-        return p.dual_gap(xf, lam)
+        ranks = np.full(p.n_blocks, p.r)
+        ranks[~self.feasible] = ranks_a
+        return p.dual_gap(xf, lam, ranks, enough=self.gap_tol)
 
     def watch(self, xa, rel_gap) -> bool:
         """Once near the optimum, the eliminated blocks must be >= eps I."""
@@ -350,6 +359,7 @@ class _ActiveBlocks:
         if not self.ok:
             return None
         p, active = self.problem, int((~self.feasible).sum())
+        self.gap_tol = gap_tol
         ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps, backend)
         xa, cert = ipm.run(x[self.a_idx], certify=self.certify, gap_tol=gap_tol,
                            max_iter=max_iter, watch=self.watch, watch_below=1e-3)
@@ -378,7 +388,8 @@ def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_i
     if result is None:
         ipm = PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), problem.r, problem.n_blocks,
                             problem.eps, backend)
-        result = ipm.run(x, certify=problem.dual_gap, gap_tol=gap_tol, max_iter=max_iter)
+        result = ipm.run(x, certify=functools.partial(problem.dual_gap, enough=gap_tol),
+                         gap_tol=gap_tol, max_iter=max_iter)
     x_ip, cert = result
     if not cert.converged:
         x_ip = _crossover(problem, x_ip, cert, newton, gap_tol)
@@ -387,18 +398,24 @@ def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_i
 
 
 def _crossover(problem: Problem, x_ip, cert, newton, gap_tol):
-    """Newton on the face the stopped interior point shows; updates ``cert`` if certified."""
+    """Newton on the face the stopped interior point shows - or, if that fails, on a face
+    with one more active direction in one block (the rank count decides on X_k against
+    Lambda_k, and a weakly active direction has both small); updates ``cert`` if certified."""
     ix, r = problem.index, problem.r
-    w, Q = np.linalg.eigh(ix.blocks(x_ip) - problem.eps * np.eye(r))
-    w = np.where(np.arange(r)[None, :] >= r - np.array(cert.face_ranks)[:, None], w, 0.0)
-    x_face = ix.x_eps(problem.eps) + ix.vech(from_eig(w, Q))
-    refined = newton.refine(x_face, cert.face_ranks) if min(w.max(axis=1)) >= 0 else None
-    if refined is None or refined[1] > gap_tol:
-        return x_ip
-    cert.converged, cert.duality_gap = True, refined[1]
-    cert.details["crossover"] = True
-    cert.face_multiplier_min = problem.dual_gap(refined[0])[1]
-    return refined[0]
+    w0, Q = np.linalg.eigh(ix.blocks(x_ip) - problem.eps * np.eye(r))
+    shown = list(cert.face_ranks)
+    for ranks in [shown] + [[m - (j == k) for j, m in enumerate(shown)]
+                            for k in range(problem.n_blocks) if shown[k] > 0]:
+        w = np.where(np.arange(r)[None, :] >= r - np.array(ranks)[:, None], w0, 0.0)
+        if min(w.max(axis=1)) < 0:
+            continue
+        refined = newton.refine(ix.x_eps(problem.eps) + ix.vech(from_eig(w, Q)), ranks)
+        if refined is not None and refined[1] <= gap_tol:
+            cert.converged, cert.duality_gap, cert.face_ranks = True, refined[1], ranks
+            cert.details["crossover"] = True
+            cert.face_multiplier_min = problem.dual_gap(refined[0])[1]
+            return refined[0]
+    return x_ip
 
 
 class InteriorPoint(Strategy):

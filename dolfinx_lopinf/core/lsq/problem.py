@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import time
 from dataclasses import dataclass, field
 
@@ -12,9 +13,11 @@ import scipy.linalg
 
 from .linalg import (
     SPDSolver,
+    face_basis,
     from_eig,
     residual_norm2,
     symmetric_normal_equations,
+    unvech,
     vech_index,
 )
 
@@ -193,27 +196,87 @@ class Problem:
         """f at the vech unknowns x."""
         return self.objective(self.index.theta(x))
 
-    def dual_gap(self, x: np.ndarray, lam: np.ndarray | None = None):
+    def dual_gap(self, x: np.ndarray, lam: np.ndarray | None = None, ranks=None,
+                 enough: float = 0.0):
         """Certified relative gap (f(x) - g(Lambda)) / f(x) of a feasible x, and the smallest
         eigenvalue of grad_S f(x) (relative to ||2 X||).
 
         For any Lambda >= 0, L(x') = f(x') - <Lambda, S(x') - eps I> has the minimiser x_s with
         f(x) - g(Lambda) = (x - x_s)^T H (x - x_s) + <Lambda, S(x) - eps I>,
         x - x_s = H^-1 v / 2, v = grad f(x) - D vech(Lambda): two nonnegative terms, no
-        cancellation. Lambda is the PSD part of grad_S f(x) and, when given, also ``lam``
-        (the interior point's multipliers); the smaller gap is a proof for both.
+        cancellation. Lambda is the PSD part of grad_S f(x), ``lam`` (the interior point's
+        multipliers) when given and, when the face ``ranks`` (rank of each S_k - eps I) are
+        given, the multipliers on that face (:meth:`_face_multipliers`, tried only when the
+        others give more than ``enough``); the smallest gap is a proof for all: any
+        Lambda >= 0 bounds, the choice only decides how tightly.
         """
         H, h = self.normal_equations
         ix = self.index
         grad = 2.0 * (H @ x + h)
         lam_w, lam_Q = np.linalg.eigh(ix.blocks(grad / ix.Dw))
         slack = ix.blocks(x) - self.eps * np.eye(self.r)
-        gaps = []
-        for lam_k in [from_eig(np.maximum(lam_w, 0.0), lam_Q)] + ([] if lam is None else [lam]):
-            v = grad - ix.Dw * ix.vech(lam_k)
-            gaps.append(0.25 * float(v @ self.spd.solve(v)) + float(np.sum(lam_k * slack)))
-        fx = self.objective_x(x)
-        return max(min(gaps), 0.0) / max(fx, 1e-300), float(lam_w.min()) / self.gradient_scale
+        fx = max(self.objective_x(x), 1e-300)
+
+        def gap(candidates):
+            out = np.inf
+            for lam_k in candidates:
+                v = grad - ix.Dw * ix.vech(lam_k)
+                out = min(out, 0.25 * float(v @ self.spd.solve(v)) + float(np.sum(lam_k * slack)))
+            return max(out, 0.0) / fx
+
+        rel = gap([from_eig(np.maximum(lam_w, 0.0), lam_Q)] + ([] if lam is None else [lam]))
+        if ranks is not None and rel > enough:
+            rel = min(rel, gap(self._face_multipliers(grad, slack, ranks)))
+        return rel, float(lam_w.min()) / self.gradient_scale
+
+    def _face_multipliers(self, grad, slack, ranks) -> list:
+        """Multipliers supported on the face: Lambda_k = N_k M_k N_k^T, N_k the r - ranks[k]
+        eigenvectors of S_k - eps I with the smallest eigenvalues, or one more (a direction
+        the rank count may have missed: both it and its multiplier small), every combination
+        over the blocks. M minimises the bound 0.25 v^T H^-1 v + <Lambda, S - eps I>
+        (v = grad - D vech Lambda) - a least-squares problem in the m (m + 1) / 2 entries of
+        each M_k - and is then clipped PSD. Near an optimum whose multipliers are small
+        (weakly active constraints) this bound is tighter than the PSD part of the gradient,
+        which pays <grad, S - eps I> on the inactive directions, where both are small but
+        their product is not (the interior point stalls there at m mu / f ~ 1e-8)."""
+        ix, r, nb = self.index, self.r, self.n_blocks
+        widest = [min(r, max(r - int(k), 0) + 1) for k in ranks]
+        cols, lin, owner, pairs, eigvecs = [], [], [], [], []
+        for k in range(nb):
+            N = np.linalg.eigh(slack[k])[1][:, :widest[k]]
+            a, b = np.triu_indices(widest[k])
+            J = np.zeros((ix.n, len(a)))
+            J[k * ix.nv:(k + 1) * ix.nv] = ix.Dw[:ix.nv, None] * face_basis(N, ix.iu)
+            S_N = N.T @ slack[k] @ N
+            cols.append(J)
+            lin.append(np.where(a == b, 1.0, 2.0) * S_N[a, b])   # <N E_ab N^T, S - eps I>
+            owner.append(np.full(len(a), k))
+            pairs.append(np.maximum(a, b))
+            eigvecs.append(N)
+        A, lin = np.hstack(cols), np.concatenate(lin)
+        owner, top = np.concatenate(owner), np.concatenate(pairs)
+        HiA = self.spd.solve(A)
+        G, bA = A.T @ HiA, HiA.T @ grad                                # A^T H^-1 A, A^T H^-1 g
+        out = []
+        for sizes in itertools.product(*[sorted({max(w - 1, 0), w}) for w in widest]):
+            keep = top < np.asarray(sizes)[owner]                    # pairs (a, b) inside the face
+            if not keep.any():
+                continue
+            # minimise 0.25 (g - A c)^T H^-1 (g - A c) + lin^T c: G c = bA - 2 lin
+            c = np.zeros(len(lin))
+            c[keep] = np.linalg.lstsq(G[np.ix_(keep, keep)], bA[keep] - 2.0 * lin[keep],
+                                      rcond=None)[0]
+            lam = np.zeros((nb, r, r))
+            for k in range(nb):
+                m = sizes[k]
+                if m == 0:
+                    continue
+                # the kept pairs of block k, in triu_indices(m) order (row-major, a <= b)
+                w, V = np.linalg.eigh(unvech(c[(owner == k) & keep], m))
+                N = eigvecs[k][:, :m]
+                lam[k] = from_eig(np.maximum(w, 0.0), N @ V)
+            out.append(lam)
+        return out
 
     def _blocks_only(self):
         if self.n_free:
