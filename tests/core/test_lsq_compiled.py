@@ -120,6 +120,11 @@ def test_compiled_step_length_eigenvalue_matches_lapack():
     assert _compiled.warm_up() == 0.0 and _compiled.compile_seconds() > 0
 
 
+def test_compiled_kernel_constants_are_the_numpy_paths():
+    for name in ("STEP_FRACTION", "STALL_STEP", "STALL_GAP", "STALL_RUN"):
+        assert getattr(_compiled, name) == getattr(ipm, name), name
+
+
 def test_jit_disabled_falls_back_to_the_numpy_iteration(monkeypatch):
     monkeypatch.setenv(compiled.JIT_ENV, "0")
     assert not _compiled.available() and _compiled.warm_up() is None

@@ -27,6 +27,7 @@ from .. import compiled as _jit
 # status bits returned by the kernel
 WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE = 1, 2, 4, 8, 16, 32
 STEP_FRACTION = 0.98  # the numpy path's (ipm.STEP_FRACTION)
+STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3  # ipm.STALL_STEP, ipm.STALL_GAP, ipm.STALL_RUN
 
 _dpotrf = _dtrsv = None  # bound to LAPACK dpotrf and BLAS dtrsv by kernels()
 
@@ -428,7 +429,10 @@ def _iterate(M0, hs2, c0, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_iter, gap
         status = 0
         if rel <= watch_below:
             status |= WATCH
-        if m * mu <= gap_tol * f_ref or a < 1e-3:
+        stalled = it >= STALL_RUN and rel <= STALL_GAP * gap_tol  # ipm._ask_certificate
+        for j in range(it - STALL_RUN, it):
+            stalled = stalled and trace[j, 0] < STALL_STEP
+        if rel <= gap_tol or a < 1e-3 or stalled:
             status |= CERTIFY
         if status:
             return status
