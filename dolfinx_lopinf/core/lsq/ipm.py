@@ -248,7 +248,7 @@ class PrimalDualIPM:
         should end."""
         gap, lam_min = certify(self.x_eps + self.T * x,
                                Lam / (self.dsc[:, :, None] * self.dsc[:, None, :]),
-                               _face_ranks(self.ix.blocks(x), Lam))
+                               functools.partial(_face_ranks, self.ix.blocks(x), Lam.copy()))
         if not np.isfinite(gap):
             cert.details["stopped"] = "no certificate for this point"
             return True
@@ -362,8 +362,11 @@ class _ActiveBlocks:
         p = self.problem
         lam = np.zeros((p.n_blocks, p.r, p.r))
         lam[~self.feasible] = lam_a
-        ranks = np.full(p.n_blocks, p.r)
-        ranks[~self.feasible] = ranks_a
+        def ranks():
+            out = np.full(p.n_blocks, p.r)
+            out[~self.feasible] = ranks_a()
+            return out
+
         return p.dual_gap(xf, lam, ranks, enough=self.gap_tol)
 
     def watch(self, xa, rel_gap) -> bool:

@@ -206,9 +206,10 @@ class Problem:
         x - x_s = H^-1 v / 2, v = grad f(x) - D vech(Lambda): two nonnegative terms, no
         cancellation. Lambda is the PSD part of grad_S f(x), ``lam`` (the interior point's
         multipliers) when given and, when the face ``ranks`` (rank of each S_k - eps I) are
-        given, the multipliers on that face (:meth:`_face_multipliers`, tried only when the
-        others give more than ``enough``); the smallest gap is a proof for all: any
-        Lambda >= 0 bounds, the choice only decides how tightly.
+        given (a sequence, or a function returning one: called only when needed), the
+        multipliers on that face (:meth:`_face_multipliers`, tried only when the others give
+        more than ``enough``); the smallest gap is a proof for all: any Lambda >= 0 bounds,
+        the choice only decides how tightly.
         """
         H, h = self.normal_equations
         ix = self.index
@@ -226,6 +227,7 @@ class Problem:
 
         rel = gap([from_eig(np.maximum(lam_w, 0.0), lam_Q)] + ([] if lam is None else [lam]))
         if ranks is not None and rel > enough:
+            ranks = ranks() if callable(ranks) else ranks
             rel = min(rel, gap(self._face_multipliers(grad, slack, ranks)))
         return rel, float(lam_w.min()) / self.gradient_scale
 
