@@ -203,6 +203,90 @@ def wave_data(r, n, seed=0):
     return Qh, ddQh, Fh
 
 
+def _fit_for(kind: str, r: int, K: int, beam, eps: float):
+    """The fit to time on one data set: ``(fit, Qh, dQh, target, U, damping)``; ``fit()`` runs
+    :func:`~dolfinx_lopinf.infer_mechanical` (or ``infer_wave``) and takes ``solver=``."""
+    if kind == "beam":
+        from ..core.basis import pod
+
+        win = beam.window(0.0, (K + 7) * beam.dt)
+        basis = pod(win.Q, r, blocks=win.blocks)
+        Qh, _, ddQh = derivatives(basis.project(win.Q), win.times)
+        fit = functools.partial(inference.infer_mechanical, Qh, None, ddQh, damping=False, eps=eps)
+        return fit, Qh, None, ddQh, None, False
+    if kind in ("forced", *ACTIVE_KINDS):
+        Qh, dQh, ddQh, U = forced_data(r, K) if kind == "forced" else active_data(kind, r, K)
+        fit = functools.partial(inference.infer_mechanical, Qh, dQh, ddQh, U, eps=eps)
+        return fit, Qh, dQh, ddQh, U, True
+    Qh, ddQh, Fh = wave_data(r, K)
+    return functools.partial(inference.infer_wave, Qh, ddQh, Fh), Qh, None, ddQh + Fh, None, False
+
+
+def _time_fit(fit, with_numpy: bool, repeats: int):
+    """``(ops, wall s median, solve s median, solve s min, numpy solve s median)``: the fit
+    ``repeats`` times, each followed by the same fit with the numpy interior point when
+    ``with_numpy`` (interleaved: a load that comes and goes hits both alike). The solve time
+    is the certificate's ``seconds`` (compressed problem in, operators out)."""
+    wall, solve, solve_np, ops = [], [], [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        ops = fit()
+        wall.append(time.perf_counter() - t0)
+        solve.append(ops.certificate.get("seconds", float("nan")))
+        if with_numpy:
+            solve_np.append(fit(solver=lsq.Auto(backend="numpy")).certificate["seconds"])
+    return (ops, float(np.median(wall)), float(np.median(solve)), float(np.min(solve)),
+            float(np.median(solve_np)) if solve_np else float("nan"))
+
+
+def _print_row(row: dict) -> None:
+    it, gap, active = row["iterations"], row["certified_gap"], row["active_eigenvalues"]
+    print(f"{row['set']:>6} {row['r']:>3} {row['K']:>6} {row['ours_seconds'] * 1e3:9.2f} "
+          f"{row['ours_solve_seconds'] * 1e3:8.2f} {row['ours_solve_seconds_min'] * 1e3:6.2f} "
+          f"{row['ours_solve_seconds_numpy'] * 1e3:8.2f} "
+          f"{row['cvxpy_compressed_seconds'] * 1e3:11.1f} {row['cvxpy_naive_seconds'] * 1e3:12.1f} "
+          f"{row['cvxpy_compressed_seconds'] / row['ours_seconds']:8.1f} "
+          f"{row['relative_gap']:11.2e} {row['min_eig_K']:10.3e} "
+          f"{it if it is not None else '-':>5} {gap if gap is not None else float('nan'):9.1e} "
+          f"{'/'.join(map(str, active)) if active else '-':>7} {row['solver']}", flush=True)
+
+
+def _bench_one(kind: str, r: int, K: int, beam, eps: float, args) -> dict:
+    """One row of the benchmark: ours (and its numpy iteration) against cvxpy/Clarabel."""
+    fit, Qh, dQh, target, U, damping = _fit_for(kind, r, K, beam, eps)
+    ops, t_ours, solve_s, solve_min, solve_np = _time_fit(
+        fit, kind in ("forced", *ACTIVE_KINDS), args.repeats)
+    gram = inference.gram_data(Qh, dQh, target, U, damping=damping)
+    t_comp, theta_ref = _median_time(
+        functools.partial(_cvxpy_compressed, gram, eps, kind), 3 if args.table else 1)
+    ranks = ops.certificate.get("face_ranks")
+    if kind == "wave":  # min ||(-Kh) Qh + (ddQh + Fh)||: theta = -Kh
+        obj_ours, obj_ref = gram.objective(-ops.K), gram.objective(theta_ref)
+    else:
+        obj_ours, obj_ref = ops.certificate["objective"], gram.objective(theta_ref)
+    t_naive = float("nan")
+    if r <= args.naive_up_to:
+        t0 = time.perf_counter()
+        _cvxpy_naive(Qh, dQh, target, U, eps, kind)
+        t_naive = time.perf_counter() - t0
+    return {"set": kind, "r": r, "K": K, "ours_seconds": t_ours,
+            "ours_solve_seconds": solve_s, "ours_solve_seconds_min": solve_min,
+            "ours_solve_seconds_numpy": solve_np,
+            "ipm_backend": (ops.certificate.get("ipm") or {}).get("backend"),
+            "cvxpy_compressed_seconds": t_comp,
+            "cvxpy_naive_seconds": t_naive, "objective_ours": obj_ours,
+            "objective_cvxpy": obj_ref,
+            "relative_gap": (obj_ours - obj_ref) / abs(obj_ref),
+            "min_eig_K": float(np.linalg.eigvalsh(ops.K).min()),
+            "min_eig_C": ops.certificate.get("min_eig_C"),
+            "solver": ops.certificate.get("solver"),
+            "iterations": ops.certificate.get("iterations"),
+            "certified_gap": ops.certificate.get("duality_gap"),
+            "symmetric": bool(np.array_equal(ops.K, ops.K.T)
+                              and (ops.C is None or np.array_equal(ops.C, ops.C.T))),
+            "active_eigenvalues": [r - k for k in ranks] if ranks else None}
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="results/benchmark_inference.json")
@@ -217,16 +301,17 @@ def main(argv=None):
                         help="the certified-fit table: r in {4, 6, 12, 20}, K in {3000, 10000}, "
                              "both-active sets included, ours vs Clarabel compressed (ms), "
                              "iterations, certified gap, active eigenvalues of Kh/Ch")
+    parser.add_argument("--r", default=None, help="comma-separated r values (overrides the above)")
     args = parser.parse_args(argv)
     r_values = [4, 20] if args.quick else R_VALUES
     k_values = [3000, 10000] if args.quick else K_VALUES
     if args.table:
         r_values, k_values, args.naive_up_to = [4, 6, 12, 20], [3000, 10000], 0
+    if args.r:
+        r_values = [int(v) for v in args.r.split(",")]
     if args.sets is None:
         args.sets = "forced,rigid,mixed,short" if args.table else "beam,forced,wave"
-    eps = 1e-8
-    rows = []
-    sets = args.sets.split(",")
+    eps, sets = 1e-8, args.sets.split(",")
     from ..core.lsq import _compiled
 
     jit_s = _compiled.warm_up()  # before any timer: compiled (or loaded from numba's cache) now
@@ -238,91 +323,12 @@ def main(argv=None):
     print(f"{'set':>6} {'r':>3} {'K':>6} {'ours ms':>9} {'(solve)':>8} {'(min)':>6} {'(numpy)':>8} {'cvx-comp ms':>11} "
           f"{'cvx-naive ms':>12} {'speed-up':>8} {'gap vs cvx':>11} {'min eig K':>10} {'its':>5} "
           f"{'cert. gap':>9} {'active':>7} solver")
+    rows = []
     for kind in sets:
         for r in r_values:
             for K in k_values:
-                if kind == "beam":
-                    from ..core.basis import pod
-
-                    win = beam.window(0.0, (K + 7) * beam.dt)
-                    basis = pod(win.Q, r, blocks=win.blocks)
-                    Qh, dQh, ddQh = derivatives(basis.project(win.Q), win.times)
-                    dQh, U, damping = None, None, False
-                    fit = functools.partial(inference.infer_mechanical, Qh, None, ddQh,
-                                            damping=False, eps=eps)
-                elif kind in ("forced", *ACTIVE_KINDS):
-                    Qh, dQh, ddQh, U = (forced_data(r, K) if kind == "forced"
-                                        else active_data(kind, r, K))
-                    damping = True
-                    fit = functools.partial(inference.infer_mechanical, Qh, dQh, ddQh, U, eps=eps)
-                else:
-                    Qh, ddQh, Fh = wave_data(r, K)
-                    dQh, U, damping = None, None, False
-                    fit = functools.partial(inference.infer_wave, Qh, ddQh, Fh)
-                solve_times = []
-
-                def timed_fit(fit=fit, solve_times=solve_times):
-                    ops = fit()
-                    solve_times.append(ops.certificate.get("seconds", float("nan")))
-                    return ops
-
-                # the same certified solve with the numpy iteration, interleaved with ours (a
-                # load that comes and goes hits both alike)
-                np_times, fit_np = [], None
-                if kind in ("forced", *ACTIVE_KINDS):
-                    fit_np = functools.partial(timed_fit, functools.partial(
-                        fit, solver=lsq.Auto(backend="numpy")), np_times)
-                ours_times = []
-                for _ in range(args.repeats):
-                    t0 = time.perf_counter()
-                    ops = timed_fit()
-                    ours_times.append(time.perf_counter() - t0)
-                    if fit_np is not None:
-                        fit_np()
-                t_ours = float(np.median(ours_times))
-                solve_s, solve_min = float(np.median(solve_times)), float(np.min(solve_times))
-                solve_np = float(np.median(np_times)) if np_times else float("nan")
-                target = ddQh + Fh if kind == "wave" else ddQh
-                gram = inference.gram_data(Qh, dQh, target, U, damping=damping)
-                t_comp, theta_ref = _median_time(
-                    functools.partial(_cvxpy_compressed, gram, eps, kind), 3 if args.table else 1)
-                ranks = ops.certificate.get("face_ranks")
-                active = [r - k for k in ranks] if ranks else None
-                if kind == "wave":  # min ||(-Kh) Qh + (ddQh + Fh)||: theta = -Kh
-                    obj_ours = gram.objective(-ops.K)
-                    obj_ref = gram.objective(theta_ref)
-                else:
-                    obj_ours, obj_ref = ops.certificate["objective"], gram.objective(theta_ref)
-                t_naive = float("nan")
-                if r <= args.naive_up_to:
-                    t0 = time.perf_counter()
-                    _cvxpy_naive(Qh, dQh, target, U, eps, kind)
-                    t_naive = time.perf_counter() - t0
-                row = {"set": kind, "r": r, "K": K, "ours_seconds": t_ours,
-                       "ours_solve_seconds": solve_s, "ours_solve_seconds_min": solve_min,
-                       "ours_solve_seconds_numpy": solve_np,
-                       "ipm_backend": (ops.certificate.get("ipm") or {}).get("backend"),
-                       "cvxpy_compressed_seconds": t_comp,
-                       "cvxpy_naive_seconds": t_naive, "objective_ours": obj_ours,
-                       "objective_cvxpy": obj_ref,
-                       "relative_gap": (obj_ours - obj_ref) / abs(obj_ref),
-                       "min_eig_K": float(np.linalg.eigvalsh(ops.K).min()),
-                       "min_eig_C": ops.certificate.get("min_eig_C"),
-                       "solver": ops.certificate.get("solver"),
-                       "iterations": ops.certificate.get("iterations"),
-                       "certified_gap": ops.certificate.get("duality_gap"),
-                       "symmetric": bool(np.array_equal(ops.K, ops.K.T)
-                                         and (ops.C is None or np.array_equal(ops.C, ops.C.T))),
-                       "active_eigenvalues": active}
-                rows.append(row)
-                print(f"{kind:>6} {r:>3} {K:>6} {t_ours * 1e3:9.2f} {solve_s * 1e3:8.2f} "
-                      f"{solve_min * 1e3:6.2f} {solve_np * 1e3:8.2f} "
-                      f"{t_comp * 1e3:11.1f} {t_naive * 1e3:12.1f} {t_comp / t_ours:8.1f} "
-                      f"{row['relative_gap']:11.2e} {row['min_eig_K']:10.3e} "
-                      f"{row['iterations'] if row['iterations'] is not None else '-':>5} "
-                      f"{row['certified_gap'] if row['certified_gap'] is not None else float('nan'):9.1e} "
-                      f"{'/'.join(map(str, active)) if active else '-':>7} {row['solver']}",
-                      flush=True)
+                rows.append(_bench_one(kind, r, K, beam, eps, args))
+                _print_row(rows[-1])
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"eps": eps, "ipm_compile_seconds": jit_s, "rows": rows}, indent=1))
