@@ -2,6 +2,7 @@
 
     python -m dolfinx_lopinf.studies.benchmark [--out FILE.json] [--quick] [--naive-up-to R]
     python -m dolfinx_lopinf.studies.benchmark --table      # the certified-fit inference table
+    python -m dolfinx_lopinf.studies.benchmark --table --r 4,12 --sets mixed   # a selection
 
 For r in {2, 4, ..., 20} and K in {3000, 6000, 10000} snapshots it times
 
