@@ -327,72 +327,18 @@ def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stack
         InputError: an argument has the wrong shape, type or value (named in the message).
     """
     opinf = _opinf()
-    Q = as_real_array(Q, "Q")
-    if Q.ndim != 2 or min(Q.shape) < 1:
-        raise InputError(f"Q must be an (n, K) array of training states, got shape {Q.shape}")
-    check_finite(Q, "Q")
+    Q, times = _training_states(opinf, Q, times, ddt_scheme, svdsolver, integrator)
     n, K = Q.shape
-    times = _times(times, "times")
-    if len(times) != K:
-        raise InputError(f"times has {len(times)} entries but Q has {K} columns (one per sample)")
-    check_uniform_times(times)
-    if ddt_scheme not in opinf.ddt.UniformFiniteDifferencer._schemes:
-        raise InputError(f"ddt_scheme {ddt_scheme!r} is not an opinf UniformFiniteDifferencer "
-                         f"scheme ({', '.join(opinf.ddt.UniformFiniteDifferencer._schemes)})")
-    if K < 7:
-        raise InputError(f"Q has {K} samples; opinf's finite differences need at least 7")
-    if svdsolver not in SVD_SOLVERS:
-        raise InputError(f"svdsolver must be one of {SVD_SOLVERS}, got {svdsolver!r}")
-    if integrator not in INTEGRATORS:
-        raise InputError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
-    r_list = [r] if np.isscalar(r) or isinstance(r, (int, np.integer)) else list(r)
-    if not r_list:
-        raise InputError("r is an empty list; give at least one reduced dimension")
-    for ri in r_list:
-        if isinstance(ri, (bool, np.bool_)) or not isinstance(ri, (int, np.integer)) or ri < 1:
-            raise InputError(f"r must be a positive integer (or a list of them), got {ri!r}")
-    r_list = [int(ri) for ri in r_list]
-
-    if velocities is None:
-        fd = opinf.ddt.UniformFiniteDifferencer(times, ddt_scheme)
-        Vel = np.asarray(fd.estimate(Q)[1])
-        velocity_source = f"opinf {ddt_scheme} finite differences of q"
-    else:
-        Vel = as_real_array(velocities, "velocities")
-        if Vel.shape != Q.shape:
-            raise InputError(f"velocities has shape {Vel.shape}; it must be {Q.shape} like Q")
-        check_finite(Vel, "velocities")
-        velocity_source = "recorded"
-    if not np.any(Q) and not np.any(Vel):
-        raise InputError("Q and its velocities are identically zero: nothing to learn")
-
-    U, input_func = None, None
-    if inputs is not None:
-        if callable(inputs):
-            m = np.size(inputs(times[0]))
-            input_func = _callable_input(inputs, m)
-        else:
-            U = _row_matrix(inputs, "inputs", lambda shape: shape[1] == K,
-                            f"(m, {K}) or ({K},): one column per sample time (or a callable of t)")
-            import scipy.interpolate
-
-            input_func = _callable_input(scipy.interpolate.CubicSpline(times, U, axis=1), U.shape[0])
+    r_list = _r_list(r)
+    Vel, velocity_source = _velocities(opinf, Q, times, velocities, ddt_scheme)
+    input_func = _input_function(inputs, times)
     operators = "A" if input_func is None else "AB"
-
     E = None
     if output_matrix is not None:
         E = _row_matrix(output_matrix, "output_matrix", lambda shape: shape[1] == n,
                         f"(p, {n}) (y = E q)")
-
     X = np.vstack([Q, Vel])
-    transformer = None
-    if scale:
-        if not np.any(Q) or not np.any(Vel):
-            raise InputError("scale=True needs q and q_t that are not identically zero; pass "
-                             "scale=False")
-        transformer = opinf.pre.TransformerMulti(
-            [opinf.pre.ShiftScaleTransformer(centering=False, scaling="maxabs") for _ in range(2)])
-        transformer.fit(X)
+    transformer = _maxabs_transformer(opinf, X, Q, Vel) if scale else None
     Xs = transformer.transform(X) if transformer is not None else X
     shared, basis_kind = _shared_basis(opinf, basis, Xs, n, K, r_list, svdsolver)
 
@@ -419,6 +365,81 @@ def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stack
 
 
 # --- internals -----------------------------------------------------------------------------
+def _training_states(opinf, Q, times, ddt_scheme, svdsolver, integrator):
+    """Checked (Q, times) and the options that depend on them (named InputError otherwise)."""
+    Q = as_real_array(Q, "Q")
+    if Q.ndim != 2 or min(Q.shape) < 1:
+        raise InputError(f"Q must be an (n, K) array of training states, got shape {Q.shape}")
+    check_finite(Q, "Q")
+    K = Q.shape[1]
+    times = _times(times, "times")
+    if len(times) != K:
+        raise InputError(f"times has {len(times)} entries but Q has {K} columns (one per sample)")
+    check_uniform_times(times)
+    if ddt_scheme not in opinf.ddt.UniformFiniteDifferencer._schemes:
+        raise InputError(f"ddt_scheme {ddt_scheme!r} is not an opinf UniformFiniteDifferencer "
+                         f"scheme ({', '.join(opinf.ddt.UniformFiniteDifferencer._schemes)})")
+    if K < 7:
+        raise InputError(f"Q has {K} samples; opinf's finite differences need at least 7")
+    if svdsolver not in SVD_SOLVERS:
+        raise InputError(f"svdsolver must be one of {SVD_SOLVERS}, got {svdsolver!r}")
+    if integrator not in INTEGRATORS:
+        raise InputError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
+    return Q, times
+
+
+def _r_list(r) -> list:
+    """The reduced dimensions asked for, as a checked list of positive ints."""
+    r_list = [r] if np.isscalar(r) or isinstance(r, (int, np.integer)) else list(r)
+    if not r_list:
+        raise InputError("r is an empty list; give at least one reduced dimension")
+    for ri in r_list:
+        if isinstance(ri, (bool, np.bool_)) or not isinstance(ri, (int, np.integer)) or ri < 1:
+            raise InputError(f"r must be a positive integer (or a list of them), got {ri!r}")
+    return [int(ri) for ri in r_list]
+
+
+def _velocities(opinf, Q, times, velocities, ddt_scheme):
+    """(q_t, where it came from): the recorded velocities, checked, or opinf's differences."""
+    if velocities is None:
+        fd = opinf.ddt.UniformFiniteDifferencer(times, ddt_scheme)
+        Vel, source = np.asarray(fd.estimate(Q)[1]), f"opinf {ddt_scheme} finite differences of q"
+    else:
+        Vel = as_real_array(velocities, "velocities")
+        if Vel.shape != Q.shape:
+            raise InputError(f"velocities has shape {Vel.shape}; it must be {Q.shape} like Q")
+        check_finite(Vel, "velocities")
+        source = "recorded"
+    if not np.any(Q) and not np.any(Vel):
+        raise InputError("Q and its velocities are identically zero: nothing to learn")
+    return Vel, source
+
+
+def _input_function(inputs, times):
+    """opinf's input function: None (model "A"), the callable, or a cubic spline of the
+    sampled inputs."""
+    if inputs is None:
+        return None
+    if callable(inputs):
+        return _callable_input(inputs, np.size(inputs(times[0])))
+    U = _row_matrix(inputs, "inputs", lambda shape: shape[1] == len(times),
+                    f"(m, {len(times)}) or ({len(times)},): one column per sample time "
+                    "(or a callable of t)")
+    import scipy.interpolate
+
+    return _callable_input(scipy.interpolate.CubicSpline(times, U, axis=1), U.shape[0])
+
+
+def _maxabs_transformer(opinf, X, Q, Vel):
+    """opinf's per-variable max|.| = 1 scaling of [q; q_t], fitted on X (tutorial practice)."""
+    if not np.any(Q) or not np.any(Vel):
+        raise InputError("scale=True needs q and q_t that are not identically zero; pass "
+                         "scale=False")
+    transformer = opinf.pre.TransformerMulti(
+        [opinf.pre.ShiftScaleTransformer(centering=False, scaling="maxabs") for _ in range(2)])
+    transformer.fit(X)
+    return transformer
+
 
 def _times(times, name):
     t = as_real_array(times, name)
