@@ -295,14 +295,7 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
     if mass not in MASS_MODELS:
         raise InputError(f"mass must be one of {MASS_MODELS}, got {mass!r}")
     trajs = _trajectories(snapshots)
-    if scheme is None:
-        recorded = {getattr(s, "scheme", None) for s in trajs}
-        if len(recorded) > 1:
-            raise InputError(f"the trajectories were recorded with different schemes {sorted(map(str, recorded))}"
-                             "; pass scheme= explicitly")
-        scheme = recorded.pop() or "auto"
-    if scheme not in SCHEMES:
-        raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    scheme = _requested_scheme(trajs, scheme)
     if not (isinstance(holdout, float) and 0.05 <= holdout <= 0.5):
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
     dt = trajs[0].dt
@@ -329,14 +322,7 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
                                  if (m, s) != (mass_chosen, fitted))
                      + f"; a simpler candidate is kept unless another is {MARGIN:g}x better")
     if scheme != "auto":
-        best = min(_CANDIDATES, key=lambda s: errors[(mass_chosen, s)])
-        if errors[(mass_chosen, named)] > 3 * errors[(mass_chosen, best)]:
-            warnings.warn(
-                f"scheme={scheme!r}: its ROM predicts the held-back data with relative error "
-                f"{errors[(mass_chosen, named)]:.3g}, the {best!r} relation's with "
-                f"{errors[(mass_chosen, best)]:.3g} (Newmark ROMs at the data's dt): the data do "
-                f"not look like a {scheme!r} loop; consider scheme='auto'", SchemeMismatchWarning,
-                stacklevel=2)
+        _warn_if_mismatched(scheme, named, {s: errors[(mass_chosen, s)] for s in _CANDIDATES})
     mass = mass_chosen
     ops = _fit_relation("newmark" if chosen == "midpoint" else chosen, pieces, damping, eps,
                         ridge, strict, mass)
@@ -349,3 +335,29 @@ def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
                         scheme="midpoint" if chosen == "midpoint" else "newmark",
                         meta={"method": "lopinf", "fit_scheme": chosen})
     return ReducedModel(rom, basis, chosen, dt, report)
+
+
+def _requested_scheme(trajs, scheme):
+    """The scheme asked for: ``scheme``, or (None) the one the trajectories were recorded
+    with, else ``"auto"``; a named InputError for mixed recordings or an unknown name."""
+    if scheme is None:
+        recorded = {getattr(s, "scheme", None) for s in trajs}
+        if len(recorded) > 1:
+            raise InputError(f"the trajectories were recorded with different schemes {sorted(map(str, recorded))}"
+                             "; pass scheme= explicitly")
+        scheme = recorded.pop() or "auto"
+    if scheme not in SCHEMES:
+        raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    return scheme
+
+
+def _warn_if_mismatched(scheme, named, errors):
+    """SchemeMismatchWarning when the requested relation ``named`` predicts the held-back data
+    more than 3x worse than the best one (``errors``: relation -> held-back error)."""
+    best = min(errors, key=errors.get)
+    if errors[named] > 3 * errors[best]:
+        warnings.warn(
+            f"scheme={scheme!r}: its ROM predicts the held-back data with relative error "
+            f"{errors[named]:.3g}, the {best!r} relation's with {errors[best]:.3g} (Newmark ROMs "
+            f"at the data's dt): the data do not look like a {scheme!r} loop; consider "
+            "scheme='auto'", SchemeMismatchWarning, stacklevel=3)
