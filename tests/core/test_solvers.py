@@ -366,3 +366,44 @@ def test_a_stalled_interior_point_hands_over_to_the_crossover_early(backend):
     assert c["ipm"]["crossover"] and c["iterations"] <= 14
     steps = [t[0] for t in c["ipm"]["trace"]]
     assert max(steps[-lsq.ipm.STALL_RUN:]) < lsq.ipm.STALL_STEP
+
+
+def _exact_rigid_data(r, seed):
+    """Exact derivatives of a damped system with two rigid-body modes (K has eigenvalue 0 <
+    eps: the constraint acts), one input: f* is ~1e-9 of the data's scale."""
+    from dolfinx_lopinf.core.ddt import derivatives
+    from dolfinx_lopinf.studies.benchmark import _orthogonal
+
+    rng = np.random.default_rng(seed)
+    V = _orthogonal(rng, r)
+    w2 = np.concatenate([np.zeros(2), np.geomspace(1, 100, r - 2)])
+    zeta = np.where(np.arange(r) < 2, 0.0, 0.02)
+    K = V @ np.diag(w2) @ V.T
+    C = V @ np.diag(2 * zeta * np.sqrt(w2)) @ V.T
+    B = rng.standard_normal((r, 1))
+    f = rng.uniform(0.5, 3, 3)
+
+    def u(t):
+        return np.array([np.sin(f * t).sum()])
+
+    tr = lo.LagrangianROM(K=0.5 * (K + K.T), C=0.5 * (C + C.T), B=B, lagrangian=False).simulate(
+        rng.standard_normal(r), rng.standard_normal(r), 2e-3, 3007, inputs=u)
+    Qh, dQh, ddQh = derivatives(tr.Qh, tr.times)
+    return (Qh, dQh, ddQh, np.column_stack([u(t) for t in tr.times])[:, 4:-4]), w2
+
+
+@pytest.mark.parametrize("r, seed", [(4, 4), (6, 6)])
+def test_data_fitted_almost_exactly_are_certified_not_crashed(r, seed):
+    """Before: r = 4 raised TypeError inside the compiled loop (a rounding-negative m mu set
+    its watch flag with no watch), r = 6 ran into the barrier and came back uncertified with a
+    'gap' of 1.9e287 (f ~ 1e-9 of the data: the gap relative to f asked for more digits than
+    double precision has; now it is relative to max(f, GAP_FLOOR ||Z||^2))."""
+    data, w2 = _exact_rigid_data(r, seed)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", lo.errors.SolverWarning)
+        ops = lo.infer_mechanical(*data, eps=EPS)
+    c = ops.certificate
+    assert c["converged"] and c["duality_gap"] <= 1e-8
+    w = np.linalg.eigvalsh(ops.K)
+    assert np.all(w >= EPS * (1 - 1e-9)) and w[:2].max() <= 1e-5  # the rigid modes: ~0
+    np.testing.assert_allclose(w[2:], w2[2:], rtol=1e-4)

@@ -323,7 +323,7 @@ def _max_step(S, dX, dL, T1, W, Lw, dg, e):
     return min(1.0, -1.0 / ev)
 
 
-def _iterate(M0, hs2, c0, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_iter, gap_tol,
+def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_iter, gap_tol,
              watch_below, trace, info):
     """Iterations it0, it0 + 1, .. of PrimalDualIPM.run (x, Lam updated in place), until one
     of them asks for Python: returns status bits (WATCH: m mu / f <= watch_below, CERTIFY:
@@ -420,7 +420,7 @@ def _iterate(M0, hs2, c0, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_iter, gap
         np.dot(M0, x, y)
         _blocks(x, full, X)
         mu = np.sum(X * Lam) / m
-        f_ref = max(abs(0.5 * (x @ y) + hs2 @ x + c0), 1e-300)
+        f_ref = max(abs(0.5 * (x @ y) + hs2 @ x + c0), f_floor)  # f_floor > 0 (PrimalDualIPM)
         rel = m * mu / f_ref
         trace[it - 1, 0] = a
         trace[it - 1, 1] = sigma
@@ -465,7 +465,7 @@ _SIGNATURES = {
     "_sturm": f"int64({_A1}, {_A1}, float64)",
     "_min_eig": f"float64({_A2}, {_A1}, {_A1})",
     "_max_step": f"float64({_A3}, {_A3}, {_A3}, {_A2}, {_A2}, {_A2}, {_A1}, {_A1})",
-    "_iterate": f"int64({_A2}, {_A1}, float64, {_A1}, {_I1}, {_I1}, {_A1}, {_I2}, {_A1}, {_A3}, "
+    "_iterate": f"int64({_A2}, {_A1}, float64, float64, {_A1}, {_I1}, {_I1}, {_A1}, {_I2}, {_A1}, {_A3}, "
                 f"{_A2}, int64, int64, float64, float64, {_A2}, {_A1})",
     "_setup": f"void({_A2}, {_A1}, {_A2})",
 }

@@ -119,11 +119,12 @@ class PrimalDualIPM:
     Lambda mapped back to the unscaled blocks) is a proof of the gap.
     """
 
-    def __init__(self, H, h, const, r, n_blocks, eps, backend="auto"):
+    def __init__(self, H, h, const, r, n_blocks, eps, backend="auto", f_floor=0.0):
         self.ix = ix = vech_index(r, n_blocks)
         self.r, self.n_blocks, self.m = r, n_blocks, n_blocks * r
         self.backend = _jit.resolve_backend(backend)
         self.x_eps = ix.x_eps(eps)
+        self.f_floor = max(float(f_floor), 1e-300)  # the gap's reference: max(f, f_floor)
         dg = np.diag(H).reshape(n_blocks, ix.nv)[:, ix.iu[0] == ix.iu[1]]
         self.dsc = np.maximum(dg, 1e-300) ** -0.25
         self.T = (self.dsc[:, ix.iu[0]] * self.dsc[:, ix.iu[1]]).reshape(-1)
@@ -173,7 +174,7 @@ class PrimalDualIPM:
             x = x + a * dx
             X, Lam = ix.blocks(x), Lam + a * dL
             mu = float(np.sum(X * Lam)) / m
-            f_ref = max(abs(self.f(x)), 1e-300)
+            f_ref = max(abs(self.f(x)), self.f_floor)
             cert.details.setdefault("trace", []).append((a, sigma, m * mu / f_ref))
             if (watch is not None and m * mu / f_ref <= watch_below
                     and not watch(self.x_eps + self.T * x, m * mu / f_ref)):
@@ -205,10 +206,11 @@ class PrimalDualIPM:
         iu0, iu1, cw, full = _kernel_index(self.r)
         x, Lam = np.array(x, dtype=float), np.ascontiguousarray(Lam, dtype=float)
         trace, info = np.zeros((max_iter, 3)), np.zeros(5)
-        watch_below = watch_below if watch is not None else -1.0
+        watch_below = watch_below if watch is not None else -np.inf
         it = 1
         while it <= max_iter:
-            status = K(M0, self.hs2, self.c0, ix.Dw[:ix.nv], iu0, iu1, cw, full, x, Lam, Mw, it,
+            status = K(M0, self.hs2, self.c0, self.f_floor, ix.Dw[:ix.nv], iu0, iu1, cw, full, x,
+                       Lam, Mw, it,
                        max_iter, gap_tol, watch_below, trace, info)
             it = cert.iterations = int(info[0])
             if status & (st.X_NOT_PD | st.SCHUR_NOT_PD | st.NOT_FINITE):
@@ -220,7 +222,8 @@ class PrimalDualIPM:
                 it -= 1  # the trace holds the iterations completed
                 break
             mu, f_ref, a = info[1], info[2], info[3]
-            if status & st.WATCH and not watch(self.x_eps + self.T * x, m * mu / f_ref):
+            if (status & st.WATCH and watch is not None
+                    and not watch(self.x_eps + self.T * x, m * mu / f_ref)):
                 cert.details["stopped"] = "stopped by watch"
                 break
             if status & st.CERTIFY and self._certified(cert, certify, x, Lam, gap_tol, a):
@@ -240,7 +243,7 @@ class PrimalDualIPM:
         floor = 1e-3 * np.abs(w).max(axis=1, keepdims=True)
         X = from_eig(np.maximum(np.abs(w), floor), Q)
         x = ix.vech(X)
-        f_ref = max(abs(self.f(x)), 1e-300)
+        f_ref = max(abs(self.f(x)), self.f_floor)
         return x, X, np.linalg.inv(X) * (0.1 * f_ref / self.m)
 
     def _certified(self, cert, certify, x, Lam, gap_tol, a) -> bool:
@@ -379,7 +382,7 @@ class _ActiveBlocks:
             return None
         p, active = self.problem, int((~self.feasible).sum())
         self.gap_tol = gap_tol
-        ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps, backend)
+        ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps, backend, p.f_floor)
         xa, cert = ipm.run(x[self.a_idx], certify=self.certify, gap_tol=gap_tol,
                            max_iter=max_iter, watch=self.watch, watch_below=1e-3)
         if not cert.converged:
@@ -406,7 +409,7 @@ def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_i
         details["eliminated_blocks_tried"] = [int(k) for k in np.flatnonzero(feasible)]
     if result is None:
         ipm = PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), problem.r, problem.n_blocks,
-                            problem.eps, backend)
+                            problem.eps, backend, problem.f_floor)
         result = ipm.run(x, certify=functools.partial(problem.dual_gap, enough=gap_tol),
                          gap_tol=gap_tol, max_iter=max_iter)
     x_ip, cert = result

@@ -22,6 +22,10 @@ from .linalg import (
 )
 
 
+#: the relative duality gap is measured against max(f, GAP_FLOOR ||Z||^2) (Problem.f_floor)
+GAP_FLOOR = 1e-12
+
+
 @dataclass
 class Certificate:
     """How a solve went.
@@ -160,6 +164,14 @@ class Problem:
     def index(self):
         return vech_index(self.r, self.n_blocks)
 
+    @functools.cached_property
+    def f_floor(self) -> float:
+        """GAP_FLOOR ||Z||^2: the smallest objective the relative gap is measured against.
+        f itself is known only to ~eps ||Z|| ||Theta L + Z||, so on data fitted almost exactly
+        (f -> 0: exact derivatives of a linear model, say) a gap relative to f alone would ask
+        for more digits than double precision has."""
+        return GAP_FLOOR * float(np.sum(self.Z**2))
+
     def objective(self, theta: np.ndarray) -> float:
         """f(Theta) = ||Theta L + Z||_F^2."""
         return residual_norm2(theta, self.L, self.Z)
@@ -198,7 +210,8 @@ class Problem:
 
     def dual_gap(self, x: np.ndarray, lam: np.ndarray | None = None, ranks=None,
                  enough: float = 0.0):
-        """Certified relative gap (f(x) - g(Lambda)) / f(x) of a feasible x, and the smallest
+        """Certified relative gap (f(x) - g(Lambda)) / max(f(x), f_floor) of a feasible x (the
+        floor :attr:`f_floor` acts only on data fitted to ~1e-6 relative), and the smallest
         eigenvalue of grad_S f(x) (relative to ||2 X||).
 
         For any Lambda >= 0, L(x') = f(x') - <Lambda, S(x') - eps I> has the minimiser x_s with
@@ -216,7 +229,7 @@ class Problem:
         grad = 2.0 * (H @ x + h)
         lam_w, lam_Q = np.linalg.eigh(ix.blocks(grad / ix.Dw))
         slack = ix.blocks(x) - self.eps * np.eye(self.r)
-        fx = max(self.objective_x(x), 1e-300)
+        fx = max(self.objective_x(x), self.f_floor, 1e-300)
 
         def gap(candidates):
             out = np.inf
