@@ -193,6 +193,12 @@ def active_data(kind: str, r: int, n: int, seed: int = 0):
     return Qh, dQh, ddQh, U
 
 
+def mechanical_data(kind: str, r: int, n: int, seed: int = 0):
+    """(Qh, dQh, ddQh, U) of a forced data set: :func:`forced_data` for ``"forced"``, else
+    :func:`active_data` of that kind."""
+    return forced_data(r, n, seed) if kind == "forced" else active_data(kind, r, n, seed)
+
+
 def wave_data(r, n, seed=0):
     rng = np.random.default_rng(seed)
     A = rng.standard_normal((r, r))
@@ -216,7 +222,7 @@ def _fit_for(kind: str, r: int, K: int, beam, eps: float):
         fit = functools.partial(inference.infer_mechanical, Qh, None, ddQh, damping=False, eps=eps)
         return fit, Qh, None, ddQh, None, False
     if kind in ("forced", *ACTIVE_KINDS):
-        Qh, dQh, ddQh, U = forced_data(r, K) if kind == "forced" else active_data(kind, r, K)
+        Qh, dQh, ddQh, U = mechanical_data(kind, r, K)
         fit = functools.partial(inference.infer_mechanical, Qh, dQh, ddQh, U, eps=eps)
         return fit, Qh, dQh, ddQh, U, True
     Qh, ddQh, Fh = wave_data(r, K)

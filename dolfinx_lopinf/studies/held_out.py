@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 
 from ..core import inference
-from .benchmark import ACTIVE_KINDS, active_data, forced_data
+from .benchmark import ACTIVE_KINDS, mechanical_data
 
 
 def run(seeds, r_values=(4, 6, 12, 20), k_values=(3000, 10000), damping=True) -> list[dict]:
@@ -27,7 +27,7 @@ def run(seeds, r_values=(4, 6, 12, 20), k_values=(3000, 10000), damping=True) ->
         for r in r_values:
             for K in k_values:
                 for seed in seeds:
-                    data = forced_data(r, K, seed) if kind == "forced" else active_data(kind, r, K, seed)
+                    data = mechanical_data(kind, r, K, seed)
                     if not damping:
                         data = (data[0], None, data[2], data[3])
                     seconds = []

@@ -34,7 +34,7 @@ SETS = [("forced", 4, 600), ("forced", 6, 600), ("rigid", 6, 800), ("mixed", 6, 
 @needs_numba
 @pytest.mark.parametrize("kind, r, n", SETS)
 def test_compiled_interior_point_reaches_the_numpy_optimum(kind, r, n):
-    data = benchmark.forced_data(r, n) if kind == "forced" else benchmark.active_data(kind, r, n)
+    data = benchmark.mechanical_data(kind, r, n)
     problem = _gram_problem(data)
     th_np, c_np, f_np = _solve(problem, "numpy")
     th_nb, c_nb, f_nb = _solve(problem, "numba")
