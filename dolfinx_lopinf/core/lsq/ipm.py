@@ -174,15 +174,14 @@ class PrimalDualIPM:
             x = x + a * dx
             X, Lam = ix.blocks(x), Lam + a * dL
             mu = float(np.sum(X * Lam)) / m
-            f_ref = max(abs(self.f(x)), self.f_floor)
-            cert.details.setdefault("trace", []).append((a, sigma, m * mu / f_ref))
-            if (watch is not None and m * mu / f_ref <= watch_below
-                    and not watch(self.x_eps + self.T * x, m * mu / f_ref)):
+            rel = m * mu / max(abs(self.f(x)), self.f_floor)
+            cert.details.setdefault("trace", []).append((a, sigma, rel))
+            if (watch is not None and rel <= watch_below
+                    and not watch(self.x_eps + self.T * x, rel)):
                 cert.details["stopped"] = "stopped by watch"
                 break
-            if _ask_certificate(m * mu / f_ref, [t[0] for t in cert.details["trace"]],
-                                gap_tol) and self._certified(
-                    cert, certify, x, Lam, gap_tol, a):
+            if _ask_certificate(rel, [t[0] for t in cert.details["trace"]], gap_tol) and \
+                    self._certified(cert, certify, x, Lam, gap_tol, a):
                 break
         cert.details["mu"] = mu
         cert.face_ranks = _face_ranks(X, Lam)
@@ -358,7 +357,7 @@ class _ActiveBlocks:
         """The eliminated blocks of a full x are >= eps I."""
         return np.linalg.eigvalsh(self.problem.index.blocks(xf)[self.feasible]).min() >= self.problem.eps
 
-    def certify(self, xa, lam_a, ranks_a):
+    def certify(self, xa, lam_a, ranks_a, enough):
         xf = self.full(xa)
         if not self.eliminated_ok(xf):
             return np.nan, np.nan
@@ -370,7 +369,7 @@ class _ActiveBlocks:
             out[~self.feasible] = ranks_a()
             return out
 
-        return p.dual_gap(xf, lam, ranks, enough=self.gap_tol)
+        return p.dual_gap(xf, lam, ranks, enough=enough)
 
     def watch(self, xa, rel_gap) -> bool:
         """Once near the optimum, the eliminated blocks must be >= eps I."""
@@ -381,10 +380,9 @@ class _ActiveBlocks:
         if not self.ok:
             return None
         p, active = self.problem, int((~self.feasible).sum())
-        self.gap_tol = gap_tol
         ipm = PrimalDualIPM(self.Hr, self.hr, self.const, p.r, active, p.eps, backend, p.f_floor)
-        xa, cert = ipm.run(x[self.a_idx], certify=self.certify, gap_tol=gap_tol,
-                           max_iter=max_iter, watch=self.watch, watch_below=1e-3)
+        xa, cert = ipm.run(x[self.a_idx], certify=functools.partial(self.certify, enough=gap_tol),
+                           gap_tol=gap_tol, max_iter=max_iter, watch=self.watch, watch_below=1e-3)
         if not cert.converged:
             return None
         ranks = np.full(p.n_blocks, p.r)
