@@ -140,6 +140,8 @@ def test_jit_disabled_falls_back_to_the_numpy_iteration(monkeypatch):
 def test_leased_scratch_arrays_are_reused_and_bounded():
     a = lsq.linalg.lease((7, 7))
     lsq.linalg.release(a)
+    single = lsq.linalg.lease((7, 7), np.float32)  # kept apart by dtype
+    assert single.dtype == np.float32 and single is not a
     assert lsq.linalg.lease((7, 7)) is a
     for n in range(20, 30):
         lsq.linalg.release(np.empty((n, n)))
@@ -159,3 +161,84 @@ def test_compiled_interior_point_stopped_short_takes_the_same_crossover():
                             or cert.details.get("crossover", False), problem.objective(theta))
         assert out["numba"][:3] == out["numpy"][:3]
         assert abs(out["numba"][3] - out["numpy"][3]) <= 1e-10 * out["numpy"][3]
+
+
+def _float64_only(monkeypatch):
+    monkeypatch.setattr(ipm, "MIXED_FROM_N", 10**9)
+
+
+@pytest.mark.parametrize("kind, n", [("rigid", 800), ("short", 800), ("mixed", 3000)])
+def test_mixed_precision_certifies_the_float64_optimum(kind, n, monkeypatch):
+    """r = 20, both blocks active (n = 420 >= MIXED_FROM_N): the early Schur matrices are
+    factored in float32, each solve checked in float64. Every run certified (gap <= 1e-8), so
+    the objectives agree to 2e-8; iterations within one of the float64 run's. The step
+    lengths of the two backends are not compared: where a float32 rounding flips, the
+    directions differ by the solve's inexactness (seen: up to 0.6 relative in one step)."""
+    problem = _gram_problem(benchmark.mechanical_data(kind, 20, n))
+    backends = ("numpy", "numba") if compiled.available() else ("numpy",)
+    runs = {b: _solve(problem, b) for b in backends}
+    _float64_only(monkeypatch)
+    _, c64, f64 = _solve(problem, "numpy")
+    assert c64.converged and c64.details["ipm"]["float32_iterations"] == 0
+    for backend, (theta, cert, f) in runs.items():
+        assert cert.converged and cert.duality_gap <= 1e-8, backend
+        assert cert.details["ipm"]["float32_iterations"] >= 3, backend
+        assert abs(f - f64) <= 2e-8 * f64, backend
+        assert abs(cert.iterations - c64.iterations) <= 1, backend
+        for k in range(2):
+            S = theta[:, k * 20:(k + 1) * 20]
+            assert np.array_equal(S, S.T)
+
+
+def _ipm_traces(problem, backend, max_iter=6):
+    """(trace, float32 iterations) of PrimalDualIPM.run on the blocks of ``problem``."""
+    blocks, _ = problem.without_free()
+    H, h = blocks.normal_equations
+    x, _ = lsq.problem.symmetric_start(blocks)
+    run = ipm.PrimalDualIPM(H, h, float(np.sum(blocks.Z**2)), blocks.r, 2, EPS, backend,
+                            blocks.f_floor)
+    _, cert = run.run(x, certify=blocks.dual_gap, gap_tol=1e-8, max_iter=max_iter)
+    return cert.details["trace"], cert.details["float32_iterations"]
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
+def test_mixed_precision_refused_is_the_float64_iteration(backend, monkeypatch):
+    """A float32 factor refused - its solves miss the residual check (forced here by a bound
+    of 0) or, numpy path, spotrf fails (forced) - redoes the iteration in float64 and stays
+    there: the same iterates, bit for bit, as the float64 run."""
+    problem = _gram_problem(benchmark.mechanical_data("rigid", 20, 800))
+    assert _ipm_traces(problem, backend)[1] >= 3
+    with monkeypatch.context() as m:
+        m.setattr(ipm, "MIXED_MAX_RESIDUAL", 0.0)
+        refused = _ipm_traces(problem, backend)
+    if backend == "numpy":
+        with monkeypatch.context() as m:
+            m.setattr(ipm.scipy.linalg.lapack, "spotrf", lambda a, **kw: (a, 1))
+            assert _ipm_traces(problem, backend) == refused
+    _float64_only(monkeypatch)
+    assert refused == (_ipm_traces(problem, backend)[0], 0)
+
+
+@needs_numba
+def test_compiled_factor_falls_back_when_float32_is_singular():
+    """The kernel's _factor: float32 (2) when asked and spotrf succeeds, float64 (1) when the
+    float32 rounding is singular ([[1, 1 - 1e-10], [1 - 1e-10, 1]]: 1 - 1e-10 rounds to 1.0f)
+    or float32 is not asked."""
+    k = _compiled.kernels()
+    r, b = 2, 2
+    n = b * r * (r + 1) // 2
+    iu0, iu1, cw, _ = ipm._kernel_index(r)
+    zeros = np.zeros((b, r, r))
+    iw, ch = np.zeros(4, dtype=np.int32), np.array([76, 78, 84], dtype=np.uint8)
+    near = np.eye(n)
+    near[0, 1] = near[1, 0] = 1.0 - 1e-10
+    for M0, single, kind in ((np.eye(n) + 0.1, True, 2), (near, True, 1), (np.eye(n), False, 1)):
+        Mw, Mf = np.empty((n, n)), np.empty((n, n), dtype=np.float32)
+        assert k["_factor"](M0, zeros, zeros, iu0, iu1, cw, Mw, Mf, single, iw, ch) == kind
+
+
+def test_mixed_precision_only_from_mixed_from_n():
+    """r = 12 with two blocks (n = 156 < MIXED_FROM_N): float64 throughout."""
+    problem = _gram_problem(benchmark.mechanical_data("rigid", 12, 800))
+    _, cert, _ = _solve(problem, "numpy")
+    assert cert.converged and cert.details["ipm"]["float32_iterations"] == 0

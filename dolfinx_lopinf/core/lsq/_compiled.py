@@ -3,12 +3,16 @@
 
 One call runs whole iterations - the Cholesky factors and inverses of the blocks X_k and
 Lambda_k, the HKM terms written straight into the Schur matrix, its Cholesky (LAPACK
-``dpotrf``), the predictor and corrector directions (two BLAS ``dtrsv`` each), the step
-lengths (``eigvalsh``) and the update - and returns to Python only when the loop needs it:
-to certify (the same test as the numpy loop), to ask ``watch``, or to stop. The arithmetic
-is the numpy path's, step by step, so the iterates agree to rounding (tests: objectives to
-1e-10, the same iteration counts); the numpy path stays the reference and the fallback
-(``backend="numpy"``, or ``DOLFINX_LOPINF_JIT=0``).
+``dpotrf``; ``spotrf`` in the early iterations of large problems, each solve checked in
+float64 with ``dsymv``: ipm.MIXED_FROM_N and after), the predictor and corrector directions
+(two BLAS ``dtrsv`` each), the step lengths (``eigvalsh``) and the update - and returns to
+Python only when the loop needs it: to certify (the same test as the numpy loop), to ask
+``watch``, or to stop. The arithmetic is the numpy path's, step by step, so the iterates
+agree to rounding (tests: objectives to 1e-10, the same iteration counts; with float32
+factors a rounding flip can change a direction within the solve's accepted inexactness, so
+there: both certified, objectives to 2e-8); the numpy path stays the reference and the
+fallback (``backend="numpy"``, or ``DOLFINX_LOPINF_JIT=0``). M0 x is ``dsymv`` on M0's upper
+triangle (half the memory traffic of a dgemv).
 
 LAPACK and BLAS are scipy's (``scipy.linalg.cython_lapack``/``cython_blas``, the library
 the numpy path calls): their addresses are registered with LLVM under fixed symbol names
@@ -29,7 +33,7 @@ WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE = 1, 2, 4, 8, 16, 3
 STEP_FRACTION = 0.98  # the numpy path's (ipm.STEP_FRACTION)
 STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3  # ipm.STALL_STEP, ipm.STALL_GAP, ipm.STALL_RUN
 
-_dpotrf = _dtrsv = None  # bound to LAPACK dpotrf and BLAS dtrsv by kernels()
+_dpotrf = _dtrsv = _spotrf = _strsv = _dsymv = None  # bound to LAPACK/BLAS by kernels()
 
 
 def available() -> bool:
@@ -38,15 +42,18 @@ def available() -> bool:
 
 
 def _externals():
-    """LAPACK dpotrf and BLAS dtrsv of scipy as numba external functions (symbols registered
-    with LLVM once per process)."""
+    """LAPACK d/spotrf and BLAS d/strsv, dsymv of scipy as numba external functions (symbols
+    registered with LLVM once per process)."""
     import llvmlite.binding as llb
     from numba import types
     from numba.extending import get_cython_function_address
 
     out = {}
     for lib, name, nargs in (("scipy.linalg.cython_lapack", "dpotrf", 5),
-                             ("scipy.linalg.cython_blas", "dtrsv", 8)):
+                             ("scipy.linalg.cython_blas", "dtrsv", 8),
+                             ("scipy.linalg.cython_lapack", "spotrf", 5),
+                             ("scipy.linalg.cython_blas", "strsv", 8),
+                             ("scipy.linalg.cython_blas", "dsymv", 10)):
         symbol = f"dolfinx_lopinf_{name}"
         llb.add_symbol(symbol, get_cython_function_address(lib, name))
         out[name] = types.ExternalFunction(symbol, types.void(*(types.voidptr,) * nargs))
@@ -148,6 +155,20 @@ def _potrf(Mw, iw, ch):
     return iw[2] == 0
 
 
+def _potrf32(Mw, Mf, iw, ch):
+    """Mw's upper triangle rounded into Mf and the in-place lower Cholesky of Mf's F-ordered
+    view in float32 (LAPACK spotrf; numpy: spotrf of Ms.T.astype(float32)); True on success."""
+    n = Mw.shape[0]
+    for p in range(n):
+        for q in range(p, n):
+            Mf[p, q] = Mw[p, q]
+    iw[0] = n
+    iw[1] = n
+    iw[2] = 0
+    _spotrf(ch[0:].ctypes, iw[0:].ctypes, Mf.ctypes, iw[1:].ctypes, iw[2:].ctypes)
+    return iw[2] == 0
+
+
 def _chol_solve(Mw, v, iw, ch):
     """v <- (L L^T)^-1 v for the lower factor L of the F-ordered view of Mw (two dtrsv)."""
     iw[0] = Mw.shape[0]
@@ -160,11 +181,42 @@ def _chol_solve(Mw, v, iw, ch):
            v.ctypes, iw[3:].ctypes)
 
 
-def _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, ch):
+def _chol_solve32(Mf, v, v32, iw, ch):
+    """_chol_solve with the float32 factor in Mf: v rounded to float32 (v32), two strsv,
+    back to float64 (linalg.cholesky_solve of a float32 factor)."""
+    n = Mf.shape[0]
+    for i in range(n):
+        v32[i] = v[i]
+    iw[0] = n
+    iw[1] = n
+    iw[3] = 1
+    _strsv(ch[0:].ctypes, ch[1:].ctypes, ch[1:].ctypes, iw[0:].ctypes, Mf.ctypes, iw[1:].ctypes,
+           v32.ctypes, iw[3:].ctypes)
+    _strsv(ch[0:].ctypes, ch[2:].ctypes, ch[1:].ctypes, iw[0:].ctypes, Mf.ctypes, iw[1:].ctypes,
+           v32.ctypes, iw[3:].ctypes)
+    for i in range(n):
+        v[i] = v32[i]
+
+
+def _symv(Mw, v, out, iw, ch):
+    """out = M v for the symmetric M whose upper triangle (C order) Mw holds (BLAS dsymv)."""
+    ab = np.array([1.0, 0.0])
+    iw[0] = Mw.shape[0]
+    iw[1] = Mw.shape[0]
+    iw[3] = 1
+    _dsymv(ch[0:].ctypes, iw[0:].ctypes, ab[0:].ctypes, Mw.ctypes, iw[1:].ctypes, v.ctypes,
+           iw[3:].ctypes, ab[1:].ctypes, out.ctypes, iw[3:].ctypes)
+
+
+def _direction(Mw, Mf, single, tol32, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2,
+               v32, wk, iw, ch):
     """The numpy path's _direction: XiR = Xi R, dx from the Schur factor, dX = S(dx),
-    dL = sym(XiR - Xi dX Lambda). R is overwritten by XiR."""
+    dL = sym(XiR - Xi dX Lambda); R is overwritten by XiR. With the float32 factor in Mf
+    (``single``) the solve's residual is checked in float64 against Mw (wk: 2 x n scratch):
+    False, and nothing else done, when it exceeds ``tol32`` (ipm.MIXED_MAX_RESIDUAL)."""
     b, r = Xi.shape[0], Xi.shape[1]
     nv = rd.shape[0] // b
+    n = rd.shape[0]
     for k in range(b):
         _matmul(Xi[k], R[k], T1)
         for i in range(r):
@@ -173,7 +225,21 @@ def _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, c
         for p in range(nv):
             i, j = iu0[p], iu1[p]
             dx[k * nv + p] = -rd[k * nv + p] + Dw[p] * (0.5 * (T1[i, j] + T1[j, i]))
-    _chol_solve(Mw, dx, iw, ch)
+    if single:
+        rhs, res = wk[0], wk[1]
+        for p in range(n):
+            rhs[p] = dx[p]
+        _chol_solve32(Mf, dx, v32, iw, ch)
+        _symv(Mw, dx, res, iw, ch)
+        rn, bn = 0.0, 0.0
+        for p in range(n):
+            res[p] = rhs[p] - res[p]
+            rn += res[p] * res[p]
+            bn += rhs[p] * rhs[p]
+        if not np.sqrt(rn) <= tol32 * np.sqrt(bn):
+            return False
+    else:
+        _chol_solve(Mw, dx, iw, ch)
     _blocks(dx, full, dX)
     for k in range(b):
         _matmul(Xi[k], dX[k], T1)
@@ -184,6 +250,7 @@ def _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, c
         for i in range(r):
             for j in range(r):
                 dL[k, i, j] = 0.5 * (T1[i, j] + T1[j, i])
+    return True
 
 
 def _is_pd_shifted(W, c, Lw):
@@ -323,12 +390,68 @@ def _max_step(S, dX, dL, T1, W, Lw, dg, e):
     return min(1.0, -1.0 / ev)
 
 
-def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_iter, gap_tol,
-             watch_below, trace, info):
+def _factor(M0, Xi, Lam, iu0, iu1, cw, Mw, Mf, single, iw, ch):
+    """The Schur matrix assembled into Mw and factored: 2 in float32 (into Mf; tried when
+    ``single``), 1 in float64 (in place, with the numpy path's relative diagonal shifts if
+    rounding needs them), 0 when not positive definite."""
+    if single:
+        _assemble(M0, Xi, Lam, iu0, iu1, cw, Mw, 0.0)
+        if _potrf32(Mw, Mf, iw, ch):
+            return 2
+    for shift in (0.0, 1e-12, 1e-10, 1e-8):
+        _assemble(M0, Xi, Lam, iu0, iu1, cw, Mw, shift)
+        if _potrf(Mw, iw, ch):
+            return 1
+    return 0
+
+
+def _predictor_corrector(Mw, Mf, single, tol32, S, X, Xi, Lam, XL, rd, R, mu, Dw, iu0, iu1, full,
+                         dx, dX, dL, T1, T2, Lw, dg, eo, v32, wk, iw, ch, step):
+    """ipm.PrimalDualIPM._predictor_corrector: dx, dL and step = [length, sigma] (length NaN
+    when a direction is not finite); False when a float32 solve fails its check."""
+    b, r = X.shape[0], X.shape[1]
+    m = b * r
+    for k in range(b):  # predictor (mu -> 0)
+        for i in range(r):
+            for j in range(r):
+                R[k, i, j] = -XL[k, i, j]
+    if not _direction(Mw, Mf, single, tol32, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1,
+                      T2, v32, wk, iw, ch):
+        return False
+    a = _max_step(S, dX, dL, T1, T2, Lw, dg, eo)
+    step[0], step[1] = a, np.nan
+    if not np.isfinite(a):
+        return True
+    mu_aff = 0.0
+    for k in range(b):
+        for i in range(r):
+            for j in range(r):
+                mu_aff += (X[k, i, j] + a * dX[k, i, j]) * (Lam[k, i, j] + a * dL[k, i, j])
+    mu_aff /= m
+    sigma = (mu_aff / mu) ** 3
+    for k in range(b):  # corrector: R = sigma mu I - X Lambda - dX_aff dLambda_aff
+        _matmul(dX[k], dL[k], T1)
+        for i in range(r):
+            for j in range(r):
+                R[k, i, j] = -XL[k, i, j] - T1[i, j]
+            R[k, i, i] += sigma * mu
+    if not _direction(Mw, Mf, single, tol32, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1,
+                      T2, v32, wk, iw, ch):
+        return False
+    a = _max_step(S, dX, dL, T1, T2, Lw, dg, eo)
+    step[0], step[1] = min(1.0, STEP_FRACTION * a) if np.isfinite(a) else np.nan, sigma
+    return True
+
+
+def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, Mf, mixed, it0, max_iter,
+             gap_tol, watch_below, trace, info):
     """Iterations it0, it0 + 1, .. of PrimalDualIPM.run (x, Lam updated in place), until one
     of them asks for Python: returns status bits (WATCH: m mu / f <= watch_below, CERTIFY:
     the numpy loop's certify test, MAX_ITER, or a stop: X_NOT_PD, SCHUR_NOT_PD,
-    NOT_FINITE); info = [last iteration, mu, f, step, sigma]."""
+    NOT_FINITE); info = [last iteration, mu, f, step, sigma, float32 off (1.0: spotrf failed
+    or a solve missed its check; the run's rule), float32 iterations]. The Schur matrix is
+    factored in float32 (in Mf) while m mu / f > mixed[0] (ipm.MIXED_ABOVE_GAP; inf: never),
+    its solves accepted up to the relative residual mixed[1] (ipm.MIXED_MAX_RESIDUAL)."""
     n = x.shape[0]
     b, r = Lam.shape[0], Lam.shape[1]
     nv = n // b
@@ -348,10 +471,12 @@ def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_
     rd = np.empty(n)
     dx = np.empty(n)
     y = np.empty(n)
+    v32 = np.empty(n, dtype=np.float32)
+    wk = np.empty((2, n))
+    step = np.empty(2)
     iw = np.zeros(4, dtype=np.int32)
     ch = np.array([76, 78, 84], dtype=np.uint8)  # 'L', 'N', 'T'
-    shifts = np.array([0.0, 1e-12, 1e-10, 1e-8])
-    np.dot(M0, x, y)
+    _symv(M0, x, y, iw, ch)
     it = it0
     while it <= max_iter:
         info[0] = it
@@ -374,50 +499,41 @@ def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, it0, max_
                 rd[k * nv + p] = y[k * nv + p] + hs2[k * nv + p] - Dw[p] * Lam[k, iu0[p], iu1[p]]
         mu = np.sum(X * Lam) / m
         info[1] = mu
-        done = False
-        for shift in shifts:
-            _assemble(M0, Xi, Lam, iu0, iu1, cw, Mw, shift)
-            if _potrf(Mw, iw, ch):
-                done = True
-                break
-        if not done:
-            info[2] = 0.5 * (x @ y) + hs2 @ x + c0
-            return SCHUR_NOT_PD
+        single = False
+        if info[5] == 0.0 and mixed[0] < np.inf:  # m mu / f now, as the numpy loop's rel
+            f_now = max(abs(0.5 * (x @ y) + hs2 @ x + c0), f_floor)
+            single = m * mu / f_now > mixed[0]
         for k in range(b):
             _matmul(X[k], Lam[k], XL[k])
-        for k in range(b):  # predictor (mu -> 0)
-            for i in range(r):
-                for j in range(r):
-                    R[k, i, j] = -XL[k, i, j]
-        _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, ch)
-        a = _max_step(S, dX, dL, T1, T2, Lw, dg, eo)
+        for _ in range(2):  # the second in float64, when float32 was refused
+            kind = _factor(M0, Xi, Lam, iu0, iu1, cw, Mw, Mf, single, iw, ch)
+            if kind == 0:
+                info[2] = 0.5 * (x @ y) + hs2 @ x + c0
+                return SCHUR_NOT_PD
+            served = kind == 2 and _predictor_corrector(
+                Mw, Mf, True, mixed[1], S, X, Xi, Lam, XL, rd, R, mu, Dw, iu0, iu1, full, dx, dX,
+                dL, T1, T2, Lw, dg, eo, v32, wk, iw, ch, step)
+            if served:
+                info[6] += 1.0
+                break
+            if single:  # spotrf failed or a solve missed its check: float64 from now on
+                info[5] = 1.0
+                single = False
+                if kind == 2:
+                    continue
+            _predictor_corrector(Mw, Mf, False, mixed[1], S, X, Xi, Lam, XL, rd, R, mu, Dw, iu0,
+                                 iu1, full, dx, dX, dL, T1, T2, Lw, dg, eo, v32, wk, iw, ch, step)
+            break
+        a, sigma = step[0], step[1]
         if not np.isfinite(a):
             return NOT_FINITE
-        mu_aff = 0.0
-        for k in range(b):
-            for i in range(r):
-                for j in range(r):
-                    mu_aff += (X[k, i, j] + a * dX[k, i, j]) * (Lam[k, i, j] + a * dL[k, i, j])
-        mu_aff /= m
-        sigma = (mu_aff / mu) ** 3
-        for k in range(b):  # corrector: R = sigma mu I - X Lambda - dX_aff dLambda_aff
-            _matmul(dX[k], dL[k], T1)
-            for i in range(r):
-                for j in range(r):
-                    R[k, i, j] = -XL[k, i, j] - T1[i, j]
-                R[k, i, i] += sigma * mu
-        _direction(Mw, Xi, Lam, rd, R, Dw, iu0, iu1, full, dx, dX, dL, T1, T2, iw, ch)
-        a = _max_step(S, dX, dL, T1, T2, Lw, dg, eo)
-        if not np.isfinite(a):
-            return NOT_FINITE
-        a = min(1.0, STEP_FRACTION * a)
         for p in range(n):
             x[p] += a * dx[p]
         for k in range(b):
             for i in range(r):
                 for j in range(r):
                     Lam[k, i, j] += a * dL[k, i, j]
-        np.dot(M0, x, y)
+        _symv(M0, x, y, iw, ch)
         _blocks(x, full, X)
         mu = np.sum(X * Lam) / m
         f_ref = max(abs(0.5 * (x @ y) + hs2 @ x + c0), f_floor)  # f_floor > 0 (PrimalDualIPM)
@@ -458,28 +574,40 @@ _SIGNATURES = {
     "_blocks": f"void({_A1}, {_I2}, {_A3})",
     "_assemble": f"void({_A2}, {_A3}, {_A3}, {_I1}, {_I1}, {_A1}, {_A2}, float64)",
     "_potrf": f"boolean({_A2}, int32[::1], uint8[::1])",
+    "_potrf32": f"boolean({_A2}, float32[:, ::1], int32[::1], uint8[::1])",
+    "_chol_solve32": f"void(float32[:, ::1], {_A1}, float32[::1], int32[::1], uint8[::1])",
     "_chol_solve": f"void({_A2}, {_A1}, int32[::1], uint8[::1])",
-    "_direction": f"void({_A2}, {_A3}, {_A3}, {_A1}, {_A3}, {_A1}, {_I1}, {_I1}, {_I2}, {_A1}, "
-                  f"{_A3}, {_A3}, {_A2}, {_A2}, int32[::1], uint8[::1])",
+    "_symv": f"void({_A2}, {_A1}, {_A1}, int32[::1], uint8[::1])",
+    "_direction": f"boolean({_A2}, float32[:, ::1], boolean, float64, {_A3}, {_A3}, {_A1}, {_A3}, {_A1}, "
+                  f"{_I1}, {_I1}, {_I2}, {_A1}, {_A3}, {_A3}, {_A2}, {_A2}, float32[::1], {_A2}, "
+                  f"int32[::1], uint8[::1])",
+    "_factor": f"int64({_A2}, {_A3}, {_A3}, {_I1}, {_I1}, {_A1}, {_A2}, float32[:, ::1], boolean, "
+               f"int32[::1], uint8[::1])",
+    "_predictor_corrector": f"boolean({_A2}, float32[:, ::1], boolean, float64, {_A3}, {_A3}, {_A3}, {_A3}, "
+                            f"{_A3}, {_A1}, {_A3}, float64, {_A1}, {_I1}, {_I1}, {_I2}, {_A1}, "
+                            f"{_A3}, {_A3}, {_A2}, {_A2}, {_A2}, {_A1}, {_A1}, float32[::1], "
+                            f"{_A2}, int32[::1], uint8[::1], {_A1})",
     "_is_pd_shifted": f"boolean({_A2}, float64, {_A2})",
     "_sturm": f"int64({_A1}, {_A1}, float64)",
     "_min_eig": f"float64({_A2}, {_A1}, {_A1})",
     "_max_step": f"float64({_A3}, {_A3}, {_A3}, {_A2}, {_A2}, {_A2}, {_A1}, {_A1})",
     "_iterate": f"int64({_A2}, {_A1}, float64, float64, {_A1}, {_I1}, {_I1}, {_A1}, {_I2}, {_A1}, {_A3}, "
-                f"{_A2}, int64, int64, float64, float64, {_A2}, {_A1})",
+                f"{_A2}, float32[:, ::1], {_A1}, int64, int64, float64, float64, {_A2}, {_A1})",
     "_setup": f"void({_A2}, {_A1}, {_A2})",
 }
 # the Householder reduction's dot products summed in SIMD lanes (an equally exact order)
 _FASTMATH = {"_min_eig": {"contract", "reassoc"}}
 # helpers first: a kernel is compiled against the compiled helpers it calls
-_ORDER = ("_is_pd_shifted", "_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_chol_solve",
-          "_direction", "_sturm", "_min_eig", "_max_step", "_iterate", "_setup")
+_ORDER = ("_is_pd_shifted", "_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_potrf32",
+          "_chol_solve", "_chol_solve32", "_symv", "_direction", "_factor", "_sturm", "_min_eig",
+          "_max_step", "_predictor_corrector", "_iterate", "_setup")
 
 
 def _bind_externals():
     g = globals()
     ext = _externals()
     g["_dpotrf"], g["_dtrsv"] = ext["dpotrf"], ext["dtrsv"]
+    g["_spotrf"], g["_strsv"], g["_dsymv"] = ext["spotrf"], ext["strsv"], ext["dsymv"]
 
 
 # no fast-math: the same operations in the same order as written (FMA contraction aside), like

@@ -12,7 +12,7 @@ import scipy.linalg
 
 from .. import compiled as _jit
 from . import _compiled
-from .face import FaceNewton
+from .face import FaceNewton, polish
 from .linalg import (
     SPDSolver,
     cholesky_solve,
@@ -33,6 +33,15 @@ STEP_FRACTION = 0.98
 #: short step is often followed by long ones, and at small r iterations cost less than the
 #: crossover (0.04 against ~1 ms at r = 4)
 STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3
+#: mixed precision: from MIXED_FROM_N unknowns on (r >= 16 with two blocks), while
+#: m mu / f > MIXED_ABOVE_GAP, the Schur matrix is factored in float32 (LAPACK spotrf: half the
+#: time of dpotrf at n = 420, which is 70 % of an iteration). Each solve with that factor is
+#: checked in float64: r = b - M dx (dsymv, 9 us), accepted if ||r|| <= MIXED_MAX_RESIDUAL ||b||
+#: - an inexact Newton direction, which the iteration absorbs: each one recomputes its
+#: residuals in float64 (seen: ||r|| / ||b|| ~ 1e-6 - 1e-4). If spotrf fails or a residual is
+#: larger, the iteration is redone in float64 and the run stays there (the Schur matrix's
+#: condition has outgrown float32)
+MIXED_FROM_N, MIXED_ABOVE_GAP, MIXED_MAX_RESIDUAL = 256, 1e-4, 1e-2
 
 
 def _ask_certificate(rel, steps, gap_tol) -> bool:
@@ -160,17 +169,22 @@ class PrimalDualIPM:
         x, X, Lam = self._start(x_start)
         mu = float(np.sum(X * Lam)) / m
         cert = Certificate("ipm", False, 0, duality_gap=np.inf, face_multiplier_min=-np.inf,
-                           details={"backend": self.backend})
+                           details={"backend": self.backend, "float32_iterations": 0})
         if self.backend == "numba":
             x, X, Lam, mu = self._run_compiled(cert, x, Lam, certify, gap_tol, max_iter, watch,
                                                watch_below)
+        else:  # m mu / f, and whether float32 may serve (MIXED_FROM_N)
+            rel, mixed = m * mu / max(abs(self.f(x)), self.f_floor), ix.n >= MIXED_FROM_N
         for it in range(1, max_iter + 1) if self.backend == "numpy" else ():
             cert.iterations = it
+            single = mixed and rel > MIXED_ABOVE_GAP
             try:
-                dx, dL, a, sigma = self._step(x, X, Lam, it)
+                dx, dL, a, sigma, used = self._step(x, X, Lam, it, single)
             except _Stop as stop:
                 cert.details["stopped"] = str(stop)
                 break
+            cert.details["float32_iterations"] += used
+            mixed = mixed and used == single  # float32 refused: float64 from now on
             x = x + a * dx
             X, Lam = ix.blocks(x), Lam + a * dL
             mu = float(np.sum(X * Lam)) / m
@@ -193,25 +207,29 @@ class PrimalDualIPM:
         Returns the final (x, X, Lambda, mu)."""
         kernels, ix = _compiled.kernels(), self.ix
         M0, Mw = lease((ix.n, ix.n)), lease((ix.n, ix.n))  # 2 Hs, the Schur matrix
+        mixed = ix.n >= MIXED_FROM_N
+        Mf = lease((ix.n, ix.n) if mixed else (1, 1), np.float32)  # its float32 factor
         try:
             kernels["_setup"](self.H, self.T, M0)
-            return self._loop(kernels["_iterate"], M0, Mw, cert, x, Lam, certify, gap_tol,
-                              max_iter, watch, watch_below)
+            return self._loop(kernels["_iterate"], M0, Mw, Mf,
+                              np.array([MIXED_ABOVE_GAP if mixed else np.inf, MIXED_MAX_RESIDUAL]),
+                              cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below)
         finally:
-            release(M0, Mw)
+            release(M0, Mw, Mf)
 
-    def _loop(self, K, M0, Mw, cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below):
+    def _loop(self, K, M0, Mw, Mf, mixed, cert, x, Lam, certify, gap_tol, max_iter, watch,
+              watch_below):
         st, ix, m = _compiled, self.ix, self.m
         iu0, iu1, cw, full = _kernel_index(self.r)
         x, Lam = np.array(x, dtype=float), np.ascontiguousarray(Lam, dtype=float)
-        trace, info = np.zeros((max_iter, 3)), np.zeros(5)
+        trace, info = np.zeros((max_iter, 3)), np.zeros(7)
         watch_below = watch_below if watch is not None else -np.inf
         it = 1
         while it <= max_iter:
             status = K(M0, self.hs2, self.c0, self.f_floor, ix.Dw[:ix.nv], iu0, iu1, cw, full, x,
-                       Lam, Mw, it,
-                       max_iter, gap_tol, watch_below, trace, info)
+                       Lam, Mw, Mf, mixed, it, max_iter, gap_tol, watch_below, trace, info)
             it = cert.iterations = int(info[0])
+            cert.details["float32_iterations"] = int(info[6])
             if status & (st.X_NOT_PD | st.SCHUR_NOT_PD | st.NOT_FINITE):
                 cert.details["stopped"] = (
                     f"iterate not positive definite at iteration {it}" if status & st.X_NOT_PD
@@ -263,8 +281,9 @@ class PrimalDualIPM:
             return True
         return False
 
-    def _step(self, x, X, Lam, it):
-        """Predictor-corrector direction and step: (dx, dLambda, step, sigma)."""
+    def _step(self, x, X, Lam, it, mixed=False):
+        """Predictor-corrector direction and step: (dx, dLambda, step, sigma, whether float32
+        served: asked by ``mixed``, spotrf succeeded and both solves passed their check)."""
         ix, m, b = self.ix, self.m, self.n_blocks
         try:  # X_k = R R^T and Lambda_k: one batched Cholesky, one batched triangular inverse
             S = np.linalg.inv(np.linalg.cholesky(np.concatenate([X, Lam])))
@@ -273,21 +292,39 @@ class PrimalDualIPM:
         Xi = S[:b].transpose(0, 2, 1) @ S[:b]  # X^-1 = R^-T R^-1: PD however wide X's spread
         rd = 2.0 * (self.Hs @ x + self.hs) - ix.Dw * ix.vech(Lam)
         mu = float(np.sum(X * Lam)) / m
-        c = self._schur_cholesky(Xi, Lam)
-        if c is None:
-            raise _Stop(f"Schur matrix not positive definite at iteration {it}, mu {mu:.1e}, "
-                        f"f {self.f(x):.3e}")
         XL = X @ Lam
-        dx, dX, dL = self._direction(c, Xi, Lam, rd, -XL)                     # predictor (mu -> 0)
+        for single in (True, False) if mixed else (False,):
+            c = self._schur_cholesky(Xi, Lam, single)
+            if c is None:
+                raise _Stop(f"Schur matrix not positive definite at iteration {it}, mu "
+                            f"{mu:.1e}, f {self.f(x):.3e}")
+            if single and c.dtype != np.float32:  # spotrf failed: c is the float64 factor
+                single = False
+            step = self._predictor_corrector(c, S, X, Xi, Lam, XL, rd, mu)
+            if step is not None:
+                return (*step, single)
+        raise AssertionError("the float64 directions are always accepted")  # pragma: no cover
+
+    def _predictor_corrector(self, c, S, X, Xi, Lam, XL, rd, mu):
+        """(dx, dLambda, step, sigma) from the Schur factor ``c``, or None when a float32
+        solve fails its residual check."""
+        m = self.m
+        pred = self._direction(c, Xi, Lam, rd, -XL)                             # mu -> 0
+        if pred is None:
+            return None
+        _, dX, dL = pred
         a = _max_step(S, dX, dL)
         mu_aff = float(np.sum((X + a * dX) * (Lam + a * dL))) / m
         sigma = (mu_aff / mu) ** 3
-        dx, dX, dL = self._direction(c, Xi, Lam, rd, sigma * mu * np.eye(self.r) - XL - dX @ dL)
-        a = min(1.0, STEP_FRACTION * _max_step(S, dX, dL))                     # corrector
-        return dx, dL, a, sigma
+        corr = self._direction(c, Xi, Lam, rd, sigma * mu * np.eye(self.r) - XL - dX @ dL)
+        if corr is None:
+            return None
+        dx, dX, dL = corr
+        return dx, dL, min(1.0, STEP_FRACTION * _max_step(S, dX, dL)), sigma
 
-    def _schur_cholesky(self, Xi, Lam):
-        """Lower Cholesky factor of the Schur matrix 2 H + HKM terms, or None."""
+    def _schur_cholesky(self, Xi, Lam, single=False):
+        """Lower Cholesky factor of the Schur matrix 2 H + HKM terms (float32 if ``single``
+        and spotrf succeeds, else float64), or None."""
         hkm = _hkm_upper(Xi, Lam)
         hkm += self.H2_diag
         Ms_flat = self.Ms.reshape(-1)
@@ -296,6 +333,11 @@ class PrimalDualIPM:
         # lower Cholesky of the F-ordered view Ms^T (its lower triangle is Ms's upper one, the
         # part written above), 20 % faster than the upper one; no diagonal scaling is needed
         # (Cholesky's accuracy does not depend on one)
+        if single:  # the F-ordered copy rounded to float32 (the compiled kernel's _potrf32)
+            c, status = scipy.linalg.lapack.spotrf(self.Ms.T.astype(np.float32), lower=1, clean=0,
+                                                   overwrite_a=1)
+            if status == 0:
+                return c
         c, status = scipy.linalg.lapack.dpotrf(self.Ms.T, lower=1, clean=0)
         for shift in (1e-12, 1e-10, 1e-8):  # rounding as mu -> 0: a small relative shift
             if status == 0:
@@ -306,9 +348,15 @@ class PrimalDualIPM:
         return c if status == 0 else None
 
     def _direction(self, c, Xi, Lam, rd, R):
+        """(dx, dX, dLambda) for the complementarity residual R, or None (a float32 ``c``
+        whose solve fails the residual check)."""
         XiR = Xi @ R
         rhs = -rd + self.ix.Dw * self.ix.vech(sym(XiR))
         dx = cholesky_solve(c, rhs)
+        if c.dtype == np.float32:  # its residual checked in float64 (MIXED_MAX_RESIDUAL)
+            res = rhs - scipy.linalg.blas.dsymv(1.0, self.Ms.T, dx, lower=1)
+            if not np.linalg.norm(res) <= MIXED_MAX_RESIDUAL * np.linalg.norm(rhs):
+                return None
         dX = self.ix.blocks(dx)
         return dx, dX, sym(XiR - Xi @ dX @ Lam)
 
@@ -418,23 +466,30 @@ def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_i
 
 
 def _crossover(problem: Problem, x_ip, cert, newton, gap_tol):
-    """Newton on the face the stopped interior point shows - or, if that fails, on a face
-    with one more active direction in one block (the rank count decides on X_k against
-    Lambda_k, and a weakly active direction has both small); updates ``cert`` if certified."""
-    ix, r = problem.index, problem.r
-    w0, Q = np.linalg.eigh(ix.blocks(x_ip) - problem.eps * np.eye(r))
+    """The exact minimiser on the face the stopped interior point shows, its eigenvectors
+    fixed (:func:`polish`, one solve), then Newton on that face (eigenvectors free) - or, if
+    both fail, on a face with one more active direction in one block (the rank count decides
+    on X_k against Lambda_k, and a weakly active direction has both small); updates ``cert``
+    if certified."""
+    ix, r, eps = problem.index, problem.r, problem.eps
+    w0, Q = np.linalg.eigh(ix.blocks(x_ip) - eps * np.eye(r))
     shown = list(cert.face_ranks)
     for ranks in [shown] + [[m - (j == k) for j, m in enumerate(shown)]
                             for k in range(problem.n_blocks) if shown[k] > 0]:
         w = np.where(np.arange(r)[None, :] >= r - np.array(ranks)[:, None], w0, 0.0)
         if min(w.max(axis=1)) < 0:
             continue
-        refined = newton.refine(ix.x_eps(problem.eps) + ix.vech(from_eig(w, Q)), ranks)
-        if refined is not None and refined[1] <= gap_tol:
-            cert.converged, cert.duality_gap, cert.face_ranks = True, refined[1], ranks
+        polished, a_min = polish(problem, eps + w, Q)  # keeps the directions with w > 0
+        face = [int(k) for k in (w > 0).sum(axis=1)]
+        found = (polished, problem.dual_gap(polished, ranks=face, enough=gap_tol)[0]
+                 if a_min > 0 else np.inf)
+        if found[1] > gap_tol:
+            face, found = ranks, newton.refine(ix.x_eps(eps) + ix.vech(from_eig(w, Q)), ranks)
+        if found is not None and found[1] <= gap_tol:
+            cert.converged, cert.duality_gap, cert.face_ranks = True, found[1], face
             cert.details["crossover"] = True
-            cert.face_multiplier_min = problem.dual_gap(refined[0])[1]
-            return refined[0]
+            cert.face_multiplier_min = problem.dual_gap(found[0])[1]
+            return found[0]
     return x_ip
 
 

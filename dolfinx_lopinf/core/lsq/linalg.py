@@ -44,33 +44,39 @@ def cholesky_solve(c: np.ndarray, b: np.ndarray) -> np.ndarray:
     """x with L L^T x = b for the lower Cholesky factor L in ``c`` (its upper triangle is not
     read) and one right-hand side: two triangular solves (``dtrsv``). OpenBLAS's ``dpotrs``
     goes through the blocked ``trsm`` and is 5-7x slower for a single vector (n = 420:
-    135 us against 20 us)."""
+    135 us against 20 us). A float32 factor (the interior point's mixed precision) solves
+    with ``b`` rounded to float32 (``strsv``) and returns float64."""
+    if c.dtype == np.float32:
+        y = scipy.linalg.blas.strsv(c, b.astype(np.float32), lower=1)
+        return scipy.linalg.blas.strsv(c, y, lower=1, trans=1, overwrite_x=1).astype(float)
     y = scipy.linalg.blas.dtrsv(c, b, lower=1)
     return scipy.linalg.blas.dtrsv(c, y, lower=1, trans=1, overwrite_x=1)
 
 
-_SCRATCH: OrderedDict = OrderedDict()  # shape -> free arrays
+_SCRATCH: OrderedDict = OrderedDict()  # (shape, dtype) -> free arrays
 _SCRATCH_LOCK = threading.Lock()
 
 
-def lease(shape) -> np.ndarray:
-    """An uninitialised float array for a temporary that does not outlive its caller (give it
+def lease(shape, dtype=np.float64) -> np.ndarray:
+    """An uninitialised array (float64 unless ``dtype``) for a temporary that does not outlive its caller (give it
     back with :func:`release`). A fresh n x n array costs a page fault per 4 kB on first
     touch - about 0.5 ms for the 420 x 420 matrices of an r = 20 fit, as much as their
     Cholesky - so the large temporaries of the interior point are reused between fits."""
+    key = (tuple(shape), np.dtype(dtype))
     with _SCRATCH_LOCK:
-        free = _SCRATCH.get(shape)
+        free = _SCRATCH.get(key)
         if free:
             return free.pop()
-    return np.empty(shape)
+    return np.empty(shape, dtype=dtype)
 
 
 def release(*arrays: np.ndarray) -> None:
-    """Give leased arrays back (a few per shape, for the four most recent shapes)."""
+    """Give leased arrays back (a few per shape and dtype, for the four most recent ones)."""
     with _SCRATCH_LOCK:
         for a in arrays:
-            free = _SCRATCH.setdefault(a.shape, [])
-            _SCRATCH.move_to_end(a.shape)
+            key = (a.shape, a.dtype)
+            free = _SCRATCH.setdefault(key, [])
+            _SCRATCH.move_to_end(key)
             if len(free) < 4:
                 free.append(a)
         while len(_SCRATCH) > 4:
