@@ -459,3 +459,76 @@ def test_crossover_takes_the_face_minimiser_where_newton_does_not():
     out = ipm._crossover(blocks, x, cert, _NoNewton(), 1e-8)
     assert cert.converged and cert.duality_gap <= 1e-8 and cert.details["crossover"]
     assert blocks.objective_x(out) <= blocks.objective(theta) * (1 + 1e-8)
+
+
+def _rank_deficient(r, seed, exact):
+    """_exact_rigid_data (exact derivatives: f ~ 1e-13 of the data's scale), or its Qh, dQh
+    projected on r - 3 directions with ddQh not (rank-deficient, poorly explained data)."""
+    data, _ = _exact_rigid_data(r, seed)
+    if exact:
+        return data
+    rng = np.random.default_rng(seed)
+    P = np.linalg.qr(rng.standard_normal((r, r - 3)))[0]
+    P = P @ P.T
+    return P @ data[0], P @ data[1], P @ data[2] + 1e-6 * rng.standard_normal(data[2].shape), data[3]
+
+
+@pytest.mark.parametrize("seed, exact", [(0, True), (1, True), (0, False), (2, False)])
+def test_rank_deficient_two_block_fits_are_certified_with_the_ridge_raised(seed, exact):
+    """r = 16, both blocks, data of numerical rank ~2/3 of the rows: the normal equations
+    square the condition (H singular to double precision, or condition ~1e17), so the
+    interior point's directions were noise in the weak directions. Before: ADMM then the
+    barrier, 1-2 s and uncertified (a 'gap' of up to 6e287). Now the ridge is raised until
+    cond(H) <= COND_MAX (said by an IllConditionedDataWarning) and the interior point
+    certifies (13-41 ms)."""
+    data = _rank_deficient(16, seed, exact)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        ops = lo.infer_mechanical(*data, eps=EPS)
+    c = ops.certificate
+    assert c["solver"] == "ipm" and c["converged"] and c["duality_gap"] <= 1e-8
+    assert c["ridge_raised_to"] in lsq.problem.RIDGE_STEPS
+    assert not any(issubclass(w.category, lo.errors.SolverWarning) for w in seen)
+    assert any("ridge raised" in str(w.message) for w in seen
+               if issubclass(w.category, lo.errors.IllConditionedDataWarning))
+    for S in (ops.K, ops.C):
+        assert np.array_equal(S, S.T) and np.linalg.eigvalsh(S).min() >= EPS * (1 - 1e-9)
+
+
+def test_with_ridge_adds_the_ridge_term():
+    """f'(Theta) = f(Theta) + gamma^2 ||Theta diag(s)||^2 + const, gamma = ridge sigma_1."""
+    rng = np.random.default_rng(0)
+    r, p = 3, 6
+    L = np.tril(rng.standard_normal((p, p))) + 2 * np.eye(p)
+    problem = lsq.Problem(L, rng.standard_normal((r, p)), 2, EPS)
+    ridged = problem.with_ridge(1e-3)
+    s = np.linalg.norm(L, axis=1)
+    gamma = 1e-3 * np.linalg.norm(L / s[:, None], 2)
+    diffs = []
+    for _ in range(3):
+        theta = rng.standard_normal((r, p))
+        diffs.append(ridged.objective(theta) - problem.objective(theta)
+                     - gamma**2 * np.sum((theta * s) ** 2))
+    assert np.ptp(diffs) <= 1e-12 * problem.objective(theta)
+
+
+def test_resolved_raises_the_floor_with_the_condition():
+    """Well conditioned: the problem itself. cond(H) ~1e10 (< COND_MAX): the gap floor rises to
+    RESOLUTION u^2 cond(H), no ridge. cond(H) beyond COND_MAX: a ridge of RIDGE_STEPS."""
+    rng = np.random.default_rng(1)
+    r, p = 3, 6
+    U = np.linalg.qr(rng.standard_normal((p, p)))[0]
+    for decades, ridge_expected in ((1, False), (5, False), (9, True)):
+        L = U @ np.diag(np.logspace(0, -decades, p))  # G = L L^T: condition 10^(2 decades)
+        problem = lsq.Problem(L, rng.standard_normal((r, p)), 2, EPS)
+        resolved, ridge = problem.resolved()
+        cond = problem.spd.condition
+        if decades == 1:
+            assert resolved is problem and ridge is None
+        elif not ridge_expected:
+            assert ridge is None and cond <= lsq.problem.COND_MAX
+            unit = np.finfo(float).eps
+            assert resolved.floor == pytest.approx(lsq.problem.RESOLUTION * unit**2 * cond)
+        else:
+            assert ridge in lsq.problem.RIDGE_STEPS
+            assert resolved.spd.condition <= lsq.problem.COND_MAX < cond

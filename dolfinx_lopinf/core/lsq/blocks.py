@@ -4,14 +4,16 @@ default dispatch of :func:`dolfinx_lopinf.infer_mechanical` (:class:`Auto`)."""
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 
+from ...errors import IllConditionedDataWarning
 from .barrier import Barrier
 from .face import FaceADMM, FaceNewton
 from .ipm import InteriorPoint, interior_point, ip_answer
 from .lyapunov import EigenbasisADMM, Lyapunov
-from .problem import Problem, Strategy, symmetric_answer, symmetric_start
+from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
 
 
 #: :class:`Auto` tries the interior point on the active blocks alone from this r on
@@ -37,12 +39,15 @@ class PSDBlocks(Strategy):
 
     def __init__(self, gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
                  max_iter: int = 5000, memory: int = 8, rho0: float = 0.3, method: str = "auto",
-                 ipm_max_iter: int = 40, eliminate: bool = True, backend: str = "auto"):
+                 ipm_max_iter: int = 40, eliminate: bool = True, backend: str = "auto",
+                 resolve: bool = False):
         if method not in ("auto", "admm"):
             raise ValueError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
                              f"not {method!r}")
         self.method, self.ipm_max_iter, self.eliminate = method, ipm_max_iter, eliminate
         self.backend = backend  # the interior point's iteration: "numpy", "numba" or "auto"
+        self.resolve = resolve  # interior point failed on a problem Problem.resolved changes:
+        # return uncertified, details["resolved"] = (problem, ridge), instead of ADMM
         self.face_admm = FaceADMM(gap_tol, kkt_tol, admm_tol, max_iter, memory, rho0)
 
     def solve_blocks(self, problem: Problem):
@@ -59,7 +64,30 @@ class PSDBlocks(Strategy):
                                                backend=self.backend)
             if ip.converged:
                 return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
+        if self.resolve:  # H singular, or the interior point failed: is double precision why?
+            resolved = _resolved(problem)
+            if resolved[0] is not problem:
+                return problem.index.theta(x), Certificate(
+                    "ipm", False, seconds=time.perf_counter() - t0,
+                    details={**details, "resolved": resolved})
         return self.face_admm.run(problem, x, newton, details, t0)
+
+
+def _resolved(problem: Problem):
+    """:meth:`Problem.resolved`, and an IllConditionedDataWarning if the ridge was raised."""
+    resolved, ridge = problem.resolved()
+    if ridge is not None:
+        cond = problem.spd.condition
+        warnings.warn(
+            "the normal equations of the constrained fit "
+            + ("are singular to double precision" if not np.isfinite(cond)
+               else f"have condition {cond:.1e}")
+            + " (rank-deficient data: they square its condition, and the ridge is below what "
+            f"they resolve); solved with the ridge raised to {ridge:g} * sigma_1 (condition "
+            f"{resolved.spd.condition:.1e}): it decides the directions with singular value "
+            f"below ~{ridge:g} sigma_1 and moves those 100x above by ~1e-4",
+            IllConditionedDataWarning, stacklevel=5)
+    return resolved, ridge
 
 
 def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, **options
@@ -75,7 +103,10 @@ class Auto(Strategy):
     """The default of :func:`dolfinx_lopinf.infer_mechanical`.
 
     Two blocks (K, C): :class:`PSDBlocks`, and the log barrier (:class:`Barrier`) if that is
-    not certified. One block (K): the Lyapunov minimiser if it is >= eps I, else the interior
+    not certified. Where H is singular to double precision or the interior point fails,
+    :meth:`Problem.resolved` decides first whether double precision is why (condition of H
+    beyond COND_MAX: the ridge is raised; beyond ~2e9: the gap floor rises); if so the fit is
+    solved again on that problem (certificate: ``ridge_raised_to``, ``gap_floor``). One block (K): the Lyapunov minimiser if it is >= eps I, else the interior
     point (:class:`InteriorPoint`, crossover included), and :class:`EigenbasisADMM` if that
     is not certified (held-out one-block fits, ``studies.held_out --conservative``: the
     interior point took a median 2.6 ms at r = 20 where EigenbasisADMM took 46 ms).
@@ -99,8 +130,15 @@ class Auto(Strategy):
 
     def solve_blocks(self, problem: Problem):
         if problem.n_blocks > 1:
-            theta, cert = PSDBlocks(method=self.method, backend=self.backend,
-                                    eliminate=problem.r >= ELIMINATE_FROM_R).solve_blocks(problem)
+            def blocks(resolve):
+                return PSDBlocks(method=self.method, backend=self.backend, resolve=resolve,
+                                 eliminate=problem.r >= ELIMINATE_FROM_R)
+            theta, cert = blocks(self.method == "auto").solve_blocks(problem)
+            resolved = cert.details.pop("resolved", None)
+            if resolved is not None:  # the interior point failed where double precision can't
+                problem, ridge = resolved
+                theta, cert = blocks(False).solve_blocks(problem)
+                cert.details.update(ridge_raised_to=ridge, gap_floor=problem.floor)
             if not cert.converged:
                 theta, cert = Barrier().solve_blocks(problem)
             return theta, cert

@@ -22,8 +22,12 @@ from .linalg import (
 )
 
 
-#: the relative duality gap is measured against max(f, GAP_FLOOR ||Z||^2) (Problem.f_floor)
-GAP_FLOOR = 1e-12
+#: the relative duality gap is measured against max(f, floor ||Z||^2) (Problem.f_floor), the
+#: floor GAP_FLOOR, or RESOLUTION u^2 cond(H) when larger (Problem.resolved; u the unit
+#: roundoff). Normal equations whose condition exceeds COND_MAX are solved with the ridge
+#: raised to the first of RIDGE_STEPS that brings it there (Problem.resolved)
+GAP_FLOOR, RESOLUTION = 1e-12, 1e10
+COND_MAX, RIDGE_STEPS = 1e12, (1e-8, 1e-7, 1e-6, 1e-5, 1e-4)
 
 
 @dataclass
@@ -145,6 +149,7 @@ class Problem:
     n_blocks: int = 1
     eps: float = 0.0
     n_free: int = 0
+    floor: float = GAP_FLOOR  # f_floor / ||Z||^2 (see resolved)
 
     def __post_init__(self):
         r, p = self.Z.shape
@@ -166,11 +171,55 @@ class Problem:
 
     @functools.cached_property
     def f_floor(self) -> float:
-        """GAP_FLOOR ||Z||^2: the smallest objective the relative gap is measured against.
-        f itself is known only to ~eps ||Z|| ||Theta L + Z||, so on data fitted almost exactly
-        (f -> 0: exact derivatives of a linear model, say) a gap relative to f alone would ask
-        for more digits than double precision has."""
-        return GAP_FLOOR * float(np.sum(self.Z**2))
+        """floor ||Z||^2: the smallest objective the relative gap is measured against. f itself
+        is known only to ~u ||Z|| ||Theta L + Z||, so on data fitted almost exactly (f -> 0:
+        exact derivatives of a linear model, say) a gap relative to f alone would ask for more
+        digits than double precision has (:meth:`resolved` raises the floor further where
+        the normal equations are ill-conditioned)."""
+        return self.floor * float(np.sum(self.Z**2))
+
+    def resolved(self):
+        """``(problem, ridge)``: this problem as double precision can certify it - ``ridge``
+        None when only the floor changed (or nothing: then the problem itself).
+
+        The certificate's 1/4 v^T H^-1 v knows the gradient only to ~u ||Z|| ||L||, which
+        H^-1 amplifies to ~u^2 cond(H) ||Z||^2 (cond of the equilibrated H, LAPACK's
+        estimate), so the floor becomes max(floor, RESOLUTION u^2 cond(H)): that noise 100x
+        below a 1e-8 gap (below cond(H) ~ 2e9 nothing changes; the benchmark and held-out
+        sets have 1e5 - 1e7). Where cond(H) > COND_MAX - rank-deficient data, whose condition
+        the normal equations square, so gram_data's ridge 1e-9 sigma_1 is invisible in them -
+        the interior point's directions carry errors ~u cond(H) and its dual residual stalls
+        (r = 16 - 20: gaps 1e-4 - 1e-3, then ADMM and the barrier for 1-4 s, uncertified):
+        the ridge is raised (:meth:`with_ridge`) to the first of RIDGE_STEPS that brings the
+        condition to COND_MAX. Computed only when asked (the estimate costs ~0.2 ms at
+        r = 20): :class:`~dolfinx_lopinf.core.lsq.Auto` asks after the interior point fails."""
+        unit = np.finfo(float).eps
+        cond, ridge, problem = self.spd.condition, None, self
+        if cond > COND_MAX:
+            for step in RIDGE_STEPS:
+                ridged = self.with_ridge(step)
+                if ridged.spd.condition <= COND_MAX:
+                    problem, ridge, cond = ridged, step, ridged.spd.condition
+                    break
+        floor = max(self.floor, RESOLUTION * unit**2 * cond) if np.isfinite(cond) else self.floor
+        if problem is self and floor == self.floor:
+            return self, None
+        return dataclasses.replace(problem, floor=floor), ridge
+
+    def with_ridge(self, ridge: float):
+        """The problem plus gamma^2 ||Theta diag(s)||^2, s_j = ||L_j|| (the data rows' norms),
+        gamma = ``ridge`` sigma_1(diag(1/s) L): the ridge of
+        :func:`~dolfinx_lopinf.core.inference.gram_data`, once more. One QR of
+        [[L^T, Z^T], [gamma diag(s), 0]], whose leading block row is [L'^T, Z'^T] (the
+        constant ||R_22||^2 dropped, as ``gram_data`` drops the data's own)."""
+        p, r = self.L.shape[0], self.r
+        s = np.maximum(np.linalg.norm(self.L, axis=1), np.finfo(float).tiny)
+        gamma = ridge * np.linalg.norm(self.L / s[:, None], 2)
+        A = np.zeros((2 * p, p + r))
+        A[:p, :p], A[:p, p:] = self.L.T, self.Z.T
+        A[p:, :p] = gamma * np.diag(s)
+        R = scipy.linalg.qr(A, mode="r", check_finite=False)[0][:p]
+        return dataclasses.replace(self, L=R[:, :p].T.copy(), Z=R[:, p:].T.copy())
 
     def objective(self, theta: np.ndarray) -> float:
         """f(Theta) = ||Theta L + Z||_F^2."""
