@@ -532,3 +532,20 @@ def test_resolved_raises_the_floor_with_the_condition():
         else:
             assert ridge in lsq.problem.RIDGE_STEPS
             assert resolved.spd.condition <= lsq.problem.COND_MAX < cond
+
+
+@pytest.mark.parametrize("max_newton", [6, 200])
+def test_barrier_reports_the_certified_bound(max_newton):
+    """The barrier's gap is the closed-form dual bound at its point (a proof: >= the true
+    relative suboptimality), and converged means that bound <= 1e-8; stopped early (6 Newton
+    steps) it is uncertified, not the central path's b r / t. Before, b r / t was reported
+    whether or not the last centring had converged."""
+    problem = _problem(r=5, n_blocks=2, seed=0)
+    theta_ref, ref = lsq.InteriorPoint(gap_tol=1e-11).solve(problem)
+    f_star = problem.objective(theta_ref)
+    theta, cert = lsq.Barrier(max_newton=max_newton).solve(problem)
+    f = problem.objective(theta)
+    assert cert.duality_gap >= (f - f_star) / f - 1e-12
+    assert cert.converged == (cert.duality_gap <= 1e-8)
+    assert cert.converged == (max_newton == 200)
+    assert "central_path_gap" in cert.details

@@ -16,6 +16,7 @@ from .face import FaceNewton, polish
 from .linalg import (
     SPDSolver,
     cholesky_solve,
+    face_ranks,
     from_eig,
     lease,
     quadratic,
@@ -98,15 +99,6 @@ def _max_step(S: np.ndarray, *dP: np.ndarray) -> float:
     S_k^T)) - one batched ``eigvalsh`` (it reads the lower triangle)."""
     ev = np.linalg.eigvalsh(S @ np.concatenate(dP) @ S.transpose(0, 2, 1)).min()
     return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
-
-
-def _face_ranks(X: np.ndarray, Lam: np.ndarray) -> list:
-    """Rank of each X_k: the eigen-directions where X exceeds Lambda (their product is ~mu,
-    strict complementarity sends one of them to 0; the scaling makes the two comparable:
-    Lambda ~ grad f ~ H' x')."""
-    wX, VX = np.linalg.eigh(X)
-    wL = np.einsum("kia,kij,kja->ka", VX, Lam, VX)
-    return [int(v) for v in (wX > wL).sum(axis=1)]
 
 
 class _Stop(Exception):
@@ -198,7 +190,7 @@ class PrimalDualIPM:
                     self._certified(cert, certify, x, Lam, gap_tol, a):
                 break
         cert.details["mu"] = mu
-        cert.face_ranks = _face_ranks(X, Lam)
+        cert.face_ranks = face_ranks(X, Lam)
         return self.x_eps + self.T * x, cert
 
     def _run_compiled(self, cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below):
@@ -268,7 +260,7 @@ class PrimalDualIPM:
         should end."""
         gap, lam_min = certify(self.x_eps + self.T * x,
                                Lam / (self.dsc[:, :, None] * self.dsc[:, None, :]),
-                               functools.partial(_face_ranks, self.ix.blocks(x), Lam.copy()))
+                               functools.partial(face_ranks, self.ix.blocks(x), Lam.copy()))
         if not np.isfinite(gap):
             cert.details["stopped"] = "no certificate for this point"
             return True

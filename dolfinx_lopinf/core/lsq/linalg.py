@@ -199,6 +199,15 @@ def vech_index(r: int, n_blocks: int) -> VechIndex:
     return index
 
 
+def face_ranks(X: np.ndarray, Lam: np.ndarray) -> list:
+    """Rank of each X_k: the eigen-directions where X exceeds Lambda (their product is ~mu,
+    strict complementarity sends one of them to 0; the interior point's scaling makes the two
+    comparable: Lambda ~ grad f ~ H' x')."""
+    wX, VX = np.linalg.eigh(X)
+    wL = np.einsum("kia,kij,kja->ka", VX, Lam, VX)
+    return [int(v) for v in (wX > wL).sum(axis=1)]
+
+
 def face_basis(P: np.ndarray, iu) -> np.ndarray:
     """Columns vech(P E_ab P^T), a <= b, E_ab = e_a e_b^T + e_b e_a^T (one term if a = b): the
     vech coordinates of the symmetric matrices P A P^T."""
