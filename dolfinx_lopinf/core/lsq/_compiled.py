@@ -390,6 +390,39 @@ def _max_step(S, dX, dL, T1, W, Lw, dg, e):
     return min(1.0, -1.0 / ev)
 
 
+def _inverses(X, Lam, S, Xi, Lw):
+    """S[k] = R^-1 of X_k = R R^T, S[b + k] of Lambda_k, and Xi[k] = X_k^-1 = S^T S (rows of
+    S, accumulated: PD however wide X's spread); False when a block is not positive definite."""
+    b, r = X.shape[0], X.shape[1]
+    for k in range(b):
+        if not (_chol_inv(X[k], S[k], Lw) and _chol_inv(Lam[k], S[b + k], Lw)):
+            return False
+    for k in range(b):
+        Sk = S[k]
+        Xi[k] = 0.0
+        for l in range(r):
+            for i in range(l + 1):
+                s = Sk[l, i]
+                for j in range(l + 1):
+                    Xi[k, i, j] += s * Sk[l, j]
+    return True
+
+
+def _status(trace, it, rel, a, gap_tol, watch_below):
+    """The status bits after iteration ``it``: WATCH (m mu / f = rel <= watch_below), CERTIFY
+    (ipm._ask_certificate: rel <= gap_tol, a step below 1e-3, or a stall - STALL_RUN steps
+    below STALL_STEP with rel <= STALL_GAP gap_tol)."""
+    status = 0
+    if rel <= watch_below:
+        status |= WATCH
+    stalled = it >= STALL_RUN and rel <= STALL_GAP * gap_tol
+    for j in range(it - STALL_RUN, it):
+        stalled = stalled and trace[j, 0] < STALL_STEP
+    if rel <= gap_tol or a < 1e-3 or stalled:
+        status |= CERTIFY
+    return status
+
+
 def _factor(M0, Xi, Lam, iu0, iu1, cw, Mw, Mf, single, iw, ch):
     """The Schur matrix assembled into Mw and factored: 2 in float32 (into Mf; tried when
     ``single``), 1 in float64 (in place, with the numpy path's relative diagonal shifts if
@@ -481,19 +514,8 @@ def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, Mf, mixed
     while it <= max_iter:
         info[0] = it
         _blocks(x, full, X)
-        ok = True
-        for k in range(b):
-            ok = ok and _chol_inv(X[k], S[k], Lw) and _chol_inv(Lam[k], S[b + k], Lw)
-        if not ok:
+        if not _inverses(X, Lam, S, Xi, Lw):
             return X_NOT_PD
-        for k in range(b):  # X^-1 = S^T S (S lower): rows of S, accumulated
-            Sk = S[k]
-            Xi[k] = 0.0
-            for l in range(r):
-                for i in range(l + 1):
-                    s = Sk[l, i]
-                    for j in range(l + 1):
-                        Xi[k, i, j] += s * Sk[l, j]
         for k in range(b):
             for p in range(nv):
                 rd[k * nv + p] = y[k * nv + p] + hs2[k * nv + p] - Dw[p] * Lam[k, iu0[p], iu1[p]]
@@ -542,14 +564,7 @@ def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, Mf, mixed
         trace[it - 1, 1] = sigma
         trace[it - 1, 2] = rel
         info[1], info[2], info[3], info[4] = mu, f_ref, a, sigma
-        status = 0
-        if rel <= watch_below:
-            status |= WATCH
-        stalled = it >= STALL_RUN and rel <= STALL_GAP * gap_tol  # ipm._ask_certificate
-        for j in range(it - STALL_RUN, it):
-            stalled = stalled and trace[j, 0] < STALL_STEP
-        if rel <= gap_tol or a < 1e-3 or stalled:
-            status |= CERTIFY
+        status = _status(trace, it, rel, a, gap_tol, watch_below)
         if status:
             return status
         it += 1
@@ -581,6 +596,8 @@ _SIGNATURES = {
     "_direction": f"boolean({_A2}, float32[:, ::1], boolean, float64, {_A3}, {_A3}, {_A1}, {_A3}, {_A1}, "
                   f"{_I1}, {_I1}, {_I2}, {_A1}, {_A3}, {_A3}, {_A2}, {_A2}, float32[::1], {_A2}, "
                   f"int32[::1], uint8[::1])",
+    "_inverses": f"boolean({_A3}, {_A3}, {_A3}, {_A3}, {_A2})",
+    "_status": f"int64({_A2}, int64, float64, float64, float64, float64)",
     "_factor": f"int64({_A2}, {_A3}, {_A3}, {_I1}, {_I1}, {_A1}, {_A2}, float32[:, ::1], boolean, "
                f"int32[::1], uint8[::1])",
     "_predictor_corrector": f"boolean({_A2}, float32[:, ::1], boolean, float64, {_A3}, {_A3}, {_A3}, {_A3}, "
@@ -599,8 +616,9 @@ _SIGNATURES = {
 _FASTMATH = {"_min_eig": {"contract", "reassoc"}}
 # helpers first: a kernel is compiled against the compiled helpers it calls
 _ORDER = ("_is_pd_shifted", "_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_potrf32",
-          "_chol_solve", "_chol_solve32", "_symv", "_direction", "_factor", "_sturm", "_min_eig",
-          "_max_step", "_predictor_corrector", "_iterate", "_setup")
+          "_chol_solve", "_chol_solve32", "_symv", "_direction", "_inverses", "_status",
+          "_factor", "_sturm", "_min_eig", "_max_step", "_predictor_corrector", "_iterate",
+          "_setup")
 
 
 def _bind_externals():
