@@ -3,6 +3,7 @@ default dispatch of :func:`dolfinx_lopinf.infer_mechanical` (:class:`Auto`)."""
 
 from __future__ import annotations
 
+import copy
 import time
 import warnings
 
@@ -13,7 +14,7 @@ from .barrier import Barrier
 from .face import FaceADMM, FaceNewton
 from .ipm import InteriorPoint, interior_point, ip_answer
 from .lyapunov import EigenbasisADMM, Lyapunov
-from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
+from .problem import Problem, Strategy, symmetric_answer, symmetric_start
 
 
 #: :class:`Auto` tries the interior point on the active blocks alone from this r on
@@ -46,8 +47,9 @@ class PSDBlocks(Strategy):
                              f"not {method!r}")
         self.method, self.ipm_max_iter, self.eliminate = method, ipm_max_iter, eliminate
         self.backend = backend  # the interior point's iteration: "numpy", "numba" or "auto"
-        self.resolve = resolve  # interior point failed on a problem Problem.resolved changes:
-        # return uncertified, details["resolved"] = (problem, ridge), instead of ADMM
+        # interior point failed (or H singular) on a problem Problem.resolved changes: solve
+        # the resolved one instead (certificate: ridge_raised_to, gap_floor)
+        self.resolve = resolve
         self.face_admm = FaceADMM(gap_tol, kkt_tol, admm_tol, max_iter, memory, rho0)
 
     def solve_blocks(self, problem: Problem):
@@ -65,11 +67,13 @@ class PSDBlocks(Strategy):
             if ip.converged:
                 return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
         if self.resolve:  # H singular, or the interior point failed: is double precision why?
-            resolved = _resolved(problem)
-            if resolved[0] is not problem:
-                return problem.index.theta(x), Certificate(
-                    "ipm", False, seconds=time.perf_counter() - t0,
-                    details={**details, "resolved": resolved})
+            resolved, ridge = _resolved(problem)
+            if resolved is not problem:
+                again = copy.copy(self)
+                again.resolve = False
+                theta, cert = again.solve_blocks(resolved)
+                cert.details.update(ridge_raised_to=ridge, gap_floor=resolved.floor)
+                return theta, cert
         return self.face_admm.run(problem, x, newton, details, t0)
 
 
@@ -106,8 +110,9 @@ class Auto(Strategy):
     not certified. Where H is singular to double precision or the interior point fails,
     :meth:`Problem.resolved` decides first whether double precision is why (condition of H
     beyond COND_MAX: the ridge is raised; beyond ~2e9: the gap floor rises); if so the fit is
-    solved again on that problem (certificate: ``ridge_raised_to``, ``gap_floor``). One block (K): the Lyapunov minimiser if it is >= eps I, else the interior
-    point (:class:`InteriorPoint`, crossover included), and :class:`EigenbasisADMM` if that
+    solved again on that problem (``PSDBlocks(resolve=True)``; certificate:
+    ``ridge_raised_to``, ``gap_floor``). One block (K): the Lyapunov minimiser if it is
+    >= eps I, else the interior point (:class:`InteriorPoint`, crossover included), and :class:`EigenbasisADMM` if that
     is not certified (held-out one-block fits, ``studies.held_out --conservative``: the
     interior point took a median 2.6 ms at r = 20 where EigenbasisADMM took 46 ms).
     ``method="admm"`` skips the interior point and the Lyapunov shortcut: the ADMM
@@ -130,17 +135,11 @@ class Auto(Strategy):
 
     def solve_blocks(self, problem: Problem):
         if problem.n_blocks > 1:
-            def blocks(resolve):
-                return PSDBlocks(method=self.method, backend=self.backend, resolve=resolve,
-                                 eliminate=problem.r >= ELIMINATE_FROM_R)
-            theta, cert = blocks(self.method == "auto").solve_blocks(problem)
-            resolved = cert.details.pop("resolved", None)
-            if resolved is not None:  # the interior point failed where double precision can't
-                problem, ridge = resolved
-                theta, cert = blocks(False).solve_blocks(problem)
-                cert.details.update(ridge_raised_to=ridge, gap_floor=problem.floor)
-            if not cert.converged:
-                theta, cert = Barrier().solve_blocks(problem)
+            resolve = self.method == "auto"
+            theta, cert = PSDBlocks(method=self.method, backend=self.backend, resolve=resolve,
+                                    eliminate=problem.r >= ELIMINATE_FROM_R).solve_blocks(problem)
+            if not cert.converged:  # on the problem PSDBlocks last solved (resolved is cached)
+                theta, cert = Barrier().solve_blocks(problem.resolved()[0] if resolve else problem)
             return theta, cert
         if self.method == "auto":
             theta, cert = Lyapunov().solve_blocks(problem)

@@ -473,15 +473,19 @@ def _crossover(problem: Problem, x_ip, cert, newton, gap_tol):
             continue
         polished, a_min = polish(problem, eps + w, Q)  # keeps the directions with w > 0
         face = [int(k) for k in (w > 0).sum(axis=1)]
-        found = (polished, problem.dual_gap(polished, ranks=face, enough=gap_tol)[0]
-                 if a_min > 0 else np.inf)
-        if found[1] > gap_tol:
-            face, found = ranks, newton.refine(ix.x_eps(eps) + ix.vech(from_eig(w, Q)), ranks)
-        if found is not None and found[1] <= gap_tol:
-            cert.converged, cert.duality_gap, cert.face_ranks = True, found[1], face
-            cert.details["crossover"] = True
-            cert.face_multiplier_min = problem.dual_gap(found[0])[1]
-            return found[0]
+        gap, lam_min = (problem.dual_gap(polished, ranks=face, enough=gap_tol) if a_min > 0
+                        else (np.inf, None))
+        x_face = polished
+        if gap > gap_tol:
+            refined = newton.refine(ix.x_eps(eps) + ix.vech(from_eig(w, Q)), ranks)
+            if refined is None or refined[1] > gap_tol:
+                continue
+            (x_face, gap), face = refined, ranks
+            lam_min = problem.dual_gap(x_face)[1]
+        cert.converged, cert.duality_gap, cert.face_ranks = True, gap, face
+        cert.details["crossover"] = True
+        cert.face_multiplier_min = lam_min
+        return x_face
     return x_ip
 
 

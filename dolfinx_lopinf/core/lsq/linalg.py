@@ -58,8 +58,8 @@ _SCRATCH_LOCK = threading.Lock()
 
 
 def lease(shape, dtype=np.float64) -> np.ndarray:
-    """An uninitialised array (float64 unless ``dtype``) for a temporary that does not outlive its caller (give it
-    back with :func:`release`). A fresh n x n array costs a page fault per 4 kB on first
+    """An uninitialised array (float64 unless ``dtype``) for a temporary that does not
+    outlive its caller (give it back with :func:`release`). A fresh n x n array costs a page fault per 4 kB on first
     touch - about 0.5 ms for the 420 x 420 matrices of an r = 20 fit, as much as their
     Cholesky - so the large temporaries of the interior point are reused between fits."""
     key = (tuple(shape), np.dtype(dtype))

@@ -180,7 +180,8 @@ class Problem:
 
     def resolved(self):
         """``(problem, ridge)``: this problem as double precision can certify it - ``ridge``
-        None when only the floor changed (or nothing: then the problem itself).
+        None when only the floor changed (or nothing: then the problem itself). Computed once
+        per problem (cached).
 
         The certificate's 1/4 v^T H^-1 v knows the gradient only to ~u ||Z|| ||L||, which
         H^-1 amplifies to ~u^2 cond(H) ||Z||^2 (cond of the equilibrated H, LAPACK's
@@ -193,6 +194,10 @@ class Problem:
         the ridge is raised (:meth:`with_ridge`) to the first of RIDGE_STEPS that brings the
         condition to COND_MAX. Computed only when asked (the estimate costs ~0.2 ms at
         r = 20): :class:`~dolfinx_lopinf.core.lsq.Auto` asks after the interior point fails."""
+        return self._resolution
+
+    @functools.cached_property
+    def _resolution(self):
         unit = np.finfo(float).eps
         cond, ridge, problem = self.spd.condition, None, self
         if cond > COND_MAX:
@@ -235,7 +240,7 @@ class Problem:
         free = np.zeros(self.L.shape[0], dtype=bool)
         free[self.L.shape[0] - self.n_free:] = True
         L_S, Z_S, recover = eliminate_free(self.L, self.Z, free)
-        return Problem(L_S, Z_S, self.n_blocks, self.eps), recover
+        return Problem(L_S, Z_S, self.n_blocks, self.eps, floor=self.floor), recover
 
     @functools.cached_property
     def normal_equations(self):
