@@ -495,6 +495,18 @@ def test_rank_deficient_two_block_fits_are_certified_with_the_ridge_raised(seed,
         assert np.array_equal(S, S.T) and np.linalg.eigvalsh(S).min() >= EPS * (1 - 1e-9)
 
 
+def test_barrier_answer_on_a_resolved_problem_says_so():
+    """r = 20, exact rank-deficient data: here the interior point and ADMM fail on the
+    resolved problem and the barrier answers (uncertified, bound 1.8e-6). Whichever strategy
+    answers, the certificate carries the ridge and floor the fit was solved with (before,
+    the barrier's did not)."""
+    data = _rank_deficient(20, 0, True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c = lo.infer_mechanical(*data, eps=EPS).certificate
+    assert c["ridge_raised_to"] in lsq.problem.RIDGE_STEPS and c["gap_floor"] > 0
+
+
 def test_with_ridge_adds_the_ridge_term():
     """f'(Theta) = f(Theta) + gamma^2 ||Theta diag(s)||^2 + const, gamma = ridge sigma_1."""
     rng = np.random.default_rng(0)

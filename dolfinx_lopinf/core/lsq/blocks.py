@@ -139,7 +139,10 @@ class Auto(Strategy):
             theta, cert = PSDBlocks(method=self.method, backend=self.backend, resolve=resolve,
                                     eliminate=problem.r >= ELIMINATE_FROM_R).solve_blocks(problem)
             if not cert.converged:  # on the problem PSDBlocks last solved (resolved is cached)
-                theta, cert = Barrier().solve_blocks(problem.resolved()[0] if resolve else problem)
+                solved, ridge = problem.resolved() if resolve else (problem, None)
+                theta, cert = Barrier().solve_blocks(solved)
+                if solved is not problem:
+                    cert.details.update(ridge_raised_to=ridge, gap_floor=solved.floor)
             return theta, cert
         if self.method == "auto":
             theta, cert = Lyapunov().solve_blocks(problem)
