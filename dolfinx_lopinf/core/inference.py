@@ -53,7 +53,7 @@ from ..errors import (
     SolverWarning,
     warn,
 )
-from .lsq.linalg import from_eig
+from .lsq.linalg import from_eig, sym
 
 
 @functools.lru_cache(maxsize=1)
@@ -429,14 +429,15 @@ def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
 
 def _floor(A: np.ndarray, eps: float) -> np.ndarray:
     """Symmetrise and make the computed eigenvalues >= eps despite rounding: eigenvalues are
-    only known to ~1e-16 ||A||, so clip at eps + 64 u ||A||_2 when any falls below eps."""
-    A = 0.5 * (A + A.T)
+    only known to ~1e-16 ||A||, so clip at eps + 64 u ||A||_2 when any falls below eps. ``A``:
+    one matrix or a stack (each block floored on its own; one batched ``eigh``)."""
+    A = sym(A)
     w, Q = np.linalg.eigh(A)
-    floor = eps + 64 * np.finfo(float).eps * np.abs(w).max()
-    if w.min() >= floor:
+    floor = eps + 64 * np.finfo(float).eps * np.abs(w).max(axis=-1, keepdims=True)
+    low = (w < floor).any(axis=-1)
+    if not low.any():
         return A
-    A = from_eig(np.maximum(w, floor), Q)
-    return 0.5 * (A + A.T)
+    return np.where(low[..., None, None], sym(from_eig(np.maximum(w, floor), Q)), A)
 
 
 def _solve_constrained(gram: GramData, eps: float, strategy) -> MechanicalOperators:
@@ -447,8 +448,10 @@ def _solve_constrained(gram: GramData, eps: float, strategy) -> MechanicalOperat
     problem = lsq.Problem(gram.L, gram.Z, 2 if gram.has_damping else 1, eps, gram.m)
     theta, solved = strategy.solve(problem)
     K, C, B = _split_theta(theta, gram.r, gram.m, gram.has_damping)
-    K = _floor(K, eps)
-    C = None if C is None else _floor(C, eps)
+    if C is None:
+        K = _floor(K, eps)
+    else:
+        K, C = _floor(np.stack([K, C]), eps)
     cert = _certificate(gram, K, C, B, solved.solver, solved.status, time.perf_counter() - t0, eps)
     cert.update({k: v for k, v in solved.as_dict().items() if k != "seconds"})
     cert.update(problem.kkt(np.hstack([K] + ([C] if C is not None else [])

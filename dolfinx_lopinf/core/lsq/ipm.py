@@ -241,7 +241,7 @@ class PrimalDualIPM:
                 break
             it += 1
         if it >= 1:
-            cert.details["trace"] = [tuple(float(v) for v in row) for row in trace[:min(it, max_iter)]]
+            cert.details["trace"] = list(map(tuple, trace[:min(it, max_iter)].tolist()))
         X = ix.blocks(x)
         return x, X, Lam, float(np.sum(X * Lam)) / m
 
@@ -249,11 +249,11 @@ class PrimalDualIPM:
         """Scaled x_start with its eigenvalues made positive, and Lambda = c X^-1."""
         ix = self.ix
         w, Q = np.linalg.eigh(ix.blocks((x_start - self.x_eps) / self.T))
-        floor = 1e-3 * np.abs(w).max(axis=1, keepdims=True)
-        X = from_eig(np.maximum(np.abs(w), floor), Q)
+        w = np.maximum(np.abs(w), 1e-3 * np.abs(w).max(axis=1, keepdims=True))
+        X = from_eig(w, Q)
         x = ix.vech(X)
         f_ref = max(abs(self.f(x)), self.f_floor)
-        return x, X, np.linalg.inv(X) * (0.1 * f_ref / self.m)
+        return x, X, from_eig((0.1 * f_ref / self.m) / w, Q)  # c X^-1 in X's eigenbasis
 
     def _certified(self, cert, certify, x, Lam, gap_tol, a) -> bool:
         """Ask ``certify`` for the gap (with the face the iterate shows); True when the loop

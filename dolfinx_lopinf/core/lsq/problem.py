@@ -121,14 +121,18 @@ def eliminate_free(L: np.ndarray, Z: np.ndarray, free: np.ndarray):
     """
     free = np.asarray(free, dtype=bool)
     order = np.concatenate([np.flatnonzero(free), np.flatnonzero(~free)])
-    Q, R = np.linalg.qr(L[order].T)
+    Q, R = scipy.linalg.qr(L[order].T, mode="economic", check_finite=False)
     Lp, Zp = R.T, Z @ Q
     nf = int(free.sum())
     L_FF, L_SF, L_SS = Lp[:nf, :nf], Lp[nf:, :nf], Lp[nf:, nf:]
 
     def recover(theta_S):
         rhs = theta_S @ L_SF + Zp[:, :nf]
-        return -scipy.linalg.solve_triangular(L_FF.T, rhs.T, lower=False).T
+        # Theta_F^T = -L_FF^-T rhs^T (LAPACK dtrtrs: no checks, the factor is ours)
+        out, info = scipy.linalg.lapack.dtrtrs(L_FF, rhs.T, lower=1, trans=1)
+        if info != 0:  # a zero pivot: L_FF singular (gram_data's ridge keeps it regular)
+            raise np.linalg.LinAlgError(f"free columns not determined (dtrtrs info {info})")
+        return -out.T
 
     return L_SS, Zp[:, nf:], recover
 
