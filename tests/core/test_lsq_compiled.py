@@ -120,6 +120,32 @@ def test_compiled_step_length_eigenvalue_matches_lapack():
     assert _compiled.warm_up() == 0.0 and _compiled.compile_seconds() > 0
 
 
+@needs_numba
+@pytest.mark.parametrize("kind, r", [("mixed", 4), ("rigid", 12), ("short", 20)])
+def test_compiled_start_is_the_numpy_paths(kind, r):
+    """The kernel _start: the scaled problem (2 Hs, 2 hs, c0) and the starting point
+    (x, X, Lambda = c X^-1) of the numpy path's __init__ and _start, to rounding."""
+    problem, _ = _gram_problem(benchmark.active_data(kind, r, 800)).without_free()
+    H, h = problem.normal_equations
+    x_start, feasible = lsq.problem.symmetric_start(problem)
+    assert not feasible.all()  # a start with eigenvalues to flip
+    ref = ipm.PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), r, 2, EPS, "numpy")
+    x_ref, X_ref, L_ref = ref._start(x_start)
+    n = len(h)
+    M0, hs2, x, X, Lam = np.empty((n, n)), np.empty(n), np.empty(n), np.empty((2, r, r)), np.empty((2, r, r))
+    nb = ipm.PrimalDualIPM(H, h, float(np.sum(problem.Z**2)), r, 2, EPS, "numba")
+    c0 = _compiled.kernels()["_start"](nb.H, nb.h, nb.const, nb.T, nb.x_eps, x_start,
+                                       ipm._kernel_index(r)[3], nb.f_floor, M0, hs2, x, X, Lam)
+    np.testing.assert_allclose(M0, ref.H2, rtol=1e-14, atol=0)
+    np.testing.assert_allclose(hs2, 2 * ref.hs, rtol=1e-12, atol=1e-14 * np.abs(ref.hs).max())
+    assert abs(c0 - ref.c0) <= 1e-12 * abs(ref.c0)
+    for got, want in ((x, x_ref), (X, X_ref)):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    # Lambda's scale is 0.1 f(x) / m, f summed in another order (x^T M0 x / 2 + hs2^T x + c0,
+    # the kernel's f): it cancels down from ||Z||^2, so to ~1e-12 relative, not to u
+    np.testing.assert_allclose(Lam, L_ref, rtol=0, atol=1e-10 * np.abs(L_ref).max())
+
+
 def test_compiled_kernel_constants_are_the_numpy_paths():
     for name in ("STEP_FRACTION", "STALL_STEP", "STALL_GAP", "STALL_RUN"):
         assert getattr(_compiled, name) == getattr(ipm, name), name

@@ -1,7 +1,9 @@
 """The interior point iteration of :class:`~dolfinx_lopinf.core.lsq.ipm.PrimalDualIPM` compiled
 (numba, optional; ``pip install '.[fast]'``).
 
-One call runs whole iterations - the Cholesky factors and inverses of the blocks X_k and
+``_start`` forms the scaled problem and the starting point in one call (the numpy path's
+``PrimalDualIPM.__init__`` and ``_start``: ~50 us of small numpy calls at r = 12); then one
+call runs whole iterations - the Cholesky factors and inverses of the blocks X_k and
 Lambda_k, the HKM terms written straight into the Schur matrix, its Cholesky (LAPACK
 ``dpotrf``; ``spotrf`` in the early iterations of large problems, each solve checked in
 float64 with ``dsymv``: ipm.MIXED_FROM_N and after), the predictor and corrector directions
@@ -572,13 +574,46 @@ def _iterate(M0, hs2, c0, f_floor, Dw, iu0, iu1, cw, full, x, Lam, Mw, Mf, mixed
     return MAX_ITER
 
 
-def _setup(H, T, M0):
-    """M0 = 2 T H T: the scaled Hessian, doubled."""
+def _start(H, h, const, T, x_eps, x_start, full, f_floor, M0, hs2, x, X, Lam):
+    """PrimalDualIPM's scaled problem and start in one call (numpy: __init__ and _start):
+    M0 = 2 T H T, hs2 = 2 T (H x_eps + h), and returned c0 = f(x_eps); then the start - per
+    block the scaled S_k(x_start) - eps I = Q diag(w) Q^T, X_k = Q diag(w') Q^T with
+    w' = max(|w|, 1e-3 max |w|), x = vech(X) - and Lambda_k = c X_k^-1 = Q diag(c / w') Q^T,
+    c = 0.1 max(|f(x)|, f_floor) / m."""
     n = H.shape[0]
+    b, r = X.shape[0], X.shape[1]
+    nv = n // b
     for p in range(n):
-        tp = 2.0 * T[p]
+        tp, s = 2.0 * T[p], 0.0
         for q in range(n):
             M0[p, q] = tp * H[p, q] * T[q]
+            s += H[p, q] * x_eps[q]
+        hs2[p] = s  # H x_eps for now
+    c0 = x_eps @ hs2 + (2.0 * h) @ x_eps + const
+    for p in range(n):
+        hs2[p] = 2.0 * T[p] * (hs2[p] + h[p])
+    W = np.empty((b, r))
+    Q = np.empty((b, r, r))
+    S = np.empty((r, r))
+    for k in range(b):
+        for i in range(r):
+            for j in range(r):
+                pos = k * nv + full[i, j]
+                S[i, j] = (x_start[pos] - x_eps[pos]) / T[pos]
+        w, V = np.linalg.eigh(S)
+        top = np.abs(w).max()
+        for i in range(r):
+            W[k, i] = max(abs(w[i]), 1e-3 * top)
+        Q[k] = V
+        X[k] = (V * W[k]) @ V.T
+        for i in range(r):
+            for j in range(i, r):
+                x[k * nv + full[i, j]] = X[k, i, j]
+    y = M0 @ x
+    c = 0.1 * max(abs(0.5 * (x @ y) + hs2 @ x + c0), f_floor) / (b * r)
+    for k in range(b):
+        Lam[k] = (Q[k] * (c / W[k])) @ Q[k].T
+    return c0
 
 
 _A1, _A2, _A3 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]"
@@ -610,7 +645,8 @@ _SIGNATURES = {
     "_max_step": f"float64({_A3}, {_A3}, {_A3}, {_A2}, {_A2}, {_A2}, {_A1}, {_A1})",
     "_iterate": f"int64({_A2}, {_A1}, float64, float64, {_A1}, {_I1}, {_I1}, {_A1}, {_I2}, {_A1}, {_A3}, "
                 f"{_A2}, float32[:, ::1], {_A1}, int64, int64, float64, float64, {_A2}, {_A1})",
-    "_setup": f"void({_A2}, {_A1}, {_A2})",
+    "_start": f"float64({_A2}, {_A1}, float64, {_A1}, {_A1}, {_A1}, {_I2}, float64, {_A2}, {_A1}, "
+              f"{_A1}, {_A3}, {_A3})",
 }
 # the Householder reduction's dot products summed in SIMD lanes (an equally exact order)
 _FASTMATH = {"_min_eig": {"contract", "reassoc"}}
@@ -618,7 +654,7 @@ _FASTMATH = {"_min_eig": {"contract", "reassoc"}}
 _ORDER = ("_is_pd_shifted", "_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_potrf32",
           "_chol_solve", "_chol_solve32", "_symv", "_direction", "_inverses", "_status",
           "_factor", "_sturm", "_min_eig", "_max_step", "_predictor_corrector", "_iterate",
-          "_setup")
+          "_start")
 
 
 def _bind_externals():

@@ -129,11 +129,9 @@ class PrimalDualIPM:
         dg = np.diag(H).reshape(n_blocks, ix.nv)[:, ix.iu[0] == ix.iu[1]]
         self.dsc = np.maximum(dg, 1e-300) ** -0.25
         self.T = (self.dsc[:, ix.iu[0]] * self.dsc[:, ix.iu[1]]).reshape(-1)
-        if self.backend == "numba":  # 2 Hs is formed by run() (in leased space), 2 hs here
-            Hx = H @ self.x_eps  # quadratic(H, h, const, x_eps) with its product kept
-            self.c0 = float(self.x_eps @ Hx + 2.0 * h @ self.x_eps + const)
+        if self.backend == "numba":  # the scaled problem is formed by run(): compiled _start
             self.H = np.ascontiguousarray(H, dtype=float)
-            self.hs2 = 2.0 * self.T * (Hx + h)
+            self.h, self.const = np.ascontiguousarray(h, dtype=float), float(const)
             return
         self.c0 = quadratic(H, h, const, self.x_eps)
         self.Hs = self.T[:, None] * H * self.T[None, :]
@@ -145,9 +143,8 @@ class PrimalDualIPM:
         self.H2_diag = np.stack([self.H2.reshape(-1)[pos] for pos in self.diag_pos])  # gathered once
 
     def f(self, v):
-        """The objective in the scaled unknowns (const = ||Z||^2; a stopping guide only)."""
-        if self.backend == "numba":  # v^T Hs v + 2 hs^T v + c0, Hs = T H T
-            return float(v @ (self.T * (self.H @ (self.T * v))) + self.hs2 @ v + self.c0)
+        """The objective in the scaled unknowns (const = ||Z||^2; a stopping guide only;
+        the numpy iteration's)."""
         return quadratic(self.Hs, self.hs, self.c0, v)
 
     def run(self, x_start, *, certify, gap_tol, max_iter=40, watch=None, watch_below=np.inf):
@@ -158,14 +155,14 @@ class PrimalDualIPM:
         X_k and ``details`` holds ``trace`` ((step, sigma, m mu / f) per iteration), ``mu``
         and why it ``stopped`` short."""
         ix, m = self.ix, self.m
-        x, X, Lam = self._start(x_start)
-        mu = float(np.sum(X * Lam)) / m
         cert = Certificate("ipm", False, 0, duality_gap=np.inf, face_multiplier_min=-np.inf,
                            details={"backend": self.backend, "float32_iterations": 0})
         if self.backend == "numba":
-            x, X, Lam, mu = self._run_compiled(cert, x, Lam, certify, gap_tol, max_iter, watch,
+            x, X, Lam, mu = self._run_compiled(cert, x_start, certify, gap_tol, max_iter, watch,
                                                watch_below)
         else:  # m mu / f, and whether float32 may serve (MIXED_FROM_N)
+            x, X, Lam = self._start(x_start)
+            mu = float(np.sum(X * Lam)) / m
             rel, mixed = m * mu / max(abs(self.f(x)), self.f_floor), ix.n >= MIXED_FROM_N
         for it in range(1, max_iter + 1) if self.backend == "numpy" else ():
             cert.iterations = it
@@ -193,32 +190,36 @@ class PrimalDualIPM:
         cert.face_ranks = face_ranks(X, Lam)
         return self.x_eps + self.T * x, cert
 
-    def _run_compiled(self, cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below):
-        """The loop of :meth:`run` by the compiled kernel (:mod:`._compiled`): it iterates
-        until the loop needs Python (certify, watch, stop); the same tests, in the same order.
-        Returns the final (x, X, Lambda, mu)."""
+    def _run_compiled(self, cert, x_start, certify, gap_tol, max_iter, watch, watch_below):
+        """:meth:`run` by the compiled kernels (:mod:`._compiled`): the scaled problem and the
+        start (``_start``, the numpy path's ``__init__`` and :meth:`_start`), then the loop,
+        which iterates until it needs Python (certify, watch, stop): the same tests, in the
+        same order. Returns the final (x, X, Lambda, mu)."""
         kernels, ix = _compiled.kernels(), self.ix
         M0, Mw = lease((ix.n, ix.n)), lease((ix.n, ix.n))  # 2 Hs, the Schur matrix
         mixed = ix.n >= MIXED_FROM_N
         Mf = lease((ix.n, ix.n) if mixed else (1, 1), np.float32)  # its float32 factor
         try:
-            kernels["_setup"](self.H, self.T, M0)
-            return self._loop(kernels["_iterate"], M0, Mw, Mf,
+            x, hs2 = np.empty(ix.n), np.empty(ix.n)
+            X, Lam = np.empty((self.n_blocks, self.r, self.r)), np.empty((self.n_blocks, self.r, self.r))
+            c0 = kernels["_start"](self.H, self.h, self.const, self.T, self.x_eps,
+                                   np.ascontiguousarray(x_start, dtype=float),
+                                   _kernel_index(self.r)[3], self.f_floor, M0, hs2, x, X, Lam)
+            return self._loop(kernels["_iterate"], M0, Mw, Mf, hs2, c0,
                               np.array([MIXED_ABOVE_GAP if mixed else np.inf, MIXED_MAX_RESIDUAL]),
                               cert, x, Lam, certify, gap_tol, max_iter, watch, watch_below)
         finally:
             release(M0, Mw, Mf)
 
-    def _loop(self, K, M0, Mw, Mf, mixed, cert, x, Lam, certify, gap_tol, max_iter, watch,
-              watch_below):
+    def _loop(self, K, M0, Mw, Mf, hs2, c0, mixed, cert, x, Lam, certify, gap_tol, max_iter,
+              watch, watch_below):
         st, ix, m = _compiled, self.ix, self.m
         iu0, iu1, cw, full = _kernel_index(self.r)
-        x, Lam = np.array(x, dtype=float), np.ascontiguousarray(Lam, dtype=float)
         trace, info = np.zeros((max_iter, 3)), np.zeros(7)
         watch_below = watch_below if watch is not None else -np.inf
         it = 1
         while it <= max_iter:
-            status = K(M0, self.hs2, self.c0, self.f_floor, ix.Dw[:ix.nv], iu0, iu1, cw, full, x,
+            status = K(M0, hs2, c0, self.f_floor, ix.Dw[:ix.nv], iu0, iu1, cw, full, x,
                        Lam, Mw, Mf, mixed, it, max_iter, gap_tol, watch_below, trace, info)
             it = cert.iterations = int(info[0])
             cert.details["float32_iterations"] = int(info[6])

@@ -275,17 +275,17 @@ class Problem:
         For any Lambda >= 0, L(x') = f(x') - <Lambda, S(x') - eps I> has the minimiser x_s with
         f(x) - g(Lambda) = (x - x_s)^T H (x - x_s) + <Lambda, S(x) - eps I>,
         x - x_s = H^-1 v / 2, v = grad f(x) - D vech(Lambda): two nonnegative terms, no
-        cancellation. Lambda is the PSD part of grad_S f(x), ``lam`` (the interior point's
-        multipliers) when given and, when the face ``ranks`` (rank of each S_k - eps I) are
-        given (a sequence, or a function returning one: called only when needed), the
-        multipliers on that face (:meth:`_face_multipliers`, tried only when the others give
-        more than ``enough``); the smallest gap is a proof for all: any Lambda >= 0 bounds,
-        the choice only decides how tightly.
+        cancellation. The candidates for Lambda, each tried only while the ones before give
+        more than ``enough``: ``lam`` (the interior point's multipliers) when given, the PSD
+        part of grad_S f(x) and, when the face ``ranks`` (rank of each S_k - eps I) are given
+        (a sequence, or a function returning one: called only when needed), the multipliers
+        on that face (:meth:`_face_multipliers`). The smallest gap is a proof for all: any
+        Lambda >= 0 bounds, the choice only decides how tightly.
         """
         H, h = self.normal_equations
         ix = self.index
         grad = 2.0 * (H @ x + h)
-        lam_w, lam_Q = np.linalg.eigh(ix.blocks(grad / ix.Dw))
+        grad_S = ix.blocks(grad / ix.Dw)
         slack = ix.blocks(x) - self.eps * np.eye(self.r)
         fx = max(self.objective_x(x), self.f_floor, 1e-300)
 
@@ -296,7 +296,12 @@ class Problem:
                 out = min(out, 0.25 * float(v @ self.spd.solve(v)) + float(np.sum(lam_k * slack)))
             return max(out, 0.0) / fx
 
-        rel = gap([from_eig(np.maximum(lam_w, 0.0), lam_Q)] + ([] if lam is None else [lam]))
+        rel = np.inf if lam is None else gap([lam])
+        if rel > enough:
+            lam_w, lam_Q = np.linalg.eigh(grad_S)
+            rel = min(rel, gap([from_eig(np.maximum(lam_w, 0.0), lam_Q)]))
+        else:  # certified by lam: the smallest eigenvalue alone, for the report
+            lam_w = np.linalg.eigvalsh(grad_S)
         if ranks is not None and rel > enough:
             ranks = ranks() if callable(ranks) else ranks
             rel = min(rel, gap(self._face_multipliers(grad, slack, ranks)))
