@@ -43,9 +43,13 @@ def _rel(a, b):
     return float(np.max(np.abs(a - b)) / max(np.max(np.abs(a)), 1e-300))
 
 
+#: run in a fresh process by compile_seconds: compiles (or loads) every ROM-loop kernel
+WARM_UP = "from dolfinx_lopinf.core import compiled; print(compiled.warm_up())"
+
+
 def compile_seconds() -> dict:
     """Cold compile (fresh NUMBA_CACHE_DIR) and cache-load seconds, each in a new process."""
-    code = "from dolfinx_lopinf import compiled; print(compiled.warm_up())"
+    code = WARM_UP
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
