@@ -85,6 +85,29 @@ def _structure_problems(name, A):
     return out
 
 
+
+def _affine_loop(G, x, forcing, n_steps: int, every: int, X, backend: str) -> None:
+    """x <- G x (+ f_k) for ``n_steps`` steps, x stored in X[:, j] after every ``every``-th
+    step (X[:, 0] holds x_0): the compiled loop (``compiled.affine_run``) or the numpy
+    reference. ``forcing``: None (unforced) or an iterable of (k0, k1, [f_k0 .. f_k1-1] as a
+    (2r, k1 - k0) array)."""
+    j = 1
+    if backend == "numba":
+        G, x = np.ascontiguousarray(G), np.ascontiguousarray(x)
+        if forcing is None:
+            compiled.affine_run(G, x, None, n_steps, 0, every, X, j)
+        for k0, k1, F in forcing or ():
+            j = compiled.affine_run(G, x, np.ascontiguousarray(F.T), k1 - k0, k0, every, X, j)
+        return
+    for k0, k1, F in forcing or [(0, n_steps, None)]:
+        for i in range(k1 - k0):
+            x = G @ x
+            if F is not None:
+                x += F[:, i]
+            if (k0 + i + 1) % every == 0:
+                X[:, j] = x
+                j += 1
+
 @dataclass(frozen=True)
 class Trajectory:
     """A ROM trajectory: times (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None;
@@ -259,7 +282,6 @@ class LagrangianROM:
             G, H0, H1 = self.newmark_propagator(dt)
             x = np.concatenate([q0, v0])
         X[:, 0] = x
-        j = 1
         timing = {"inputs": 0.0}  # evaluating a callable input is not integration time
 
         def forcing_chunks():
@@ -272,28 +294,8 @@ class LagrangianROM:
                 yield k0, k1, (H @ U if self.scheme == "midpoint"
                                else H0 @ U[:, :-1] + H1 @ U[:, 1:])
 
-        if backend == "numba":
-            G, x = np.ascontiguousarray(G), np.ascontiguousarray(x)
-            if chunks is None:
-                compiled.affine_run(G, x, None, n_steps, 0, every, X, j)
-            else:
-                for k0, k1, forcing in forcing_chunks():
-                    j = compiled.affine_run(G, x, np.ascontiguousarray(forcing.T), k1 - k0, k0,
-                                            every, X, j)
-        elif chunks is None:
-            for k in range(n_steps):
-                x = G @ x
-                if (k + 1) % every == 0:
-                    X[:, j] = x
-                    j += 1
-        else:
-            for k0, k1, forcing in forcing_chunks():
-                for i in range(k1 - k0):
-                    x = G @ x
-                    x += forcing[:, i]
-                    if (k0 + i + 1) % every == 0:
-                        X[:, j] = x
-                        j += 1
+        _affine_loop(G, x, None if chunks is None else forcing_chunks(), n_steps, every, X,
+                     backend)
         input_seconds = timing["inputs"]
         Qh = X[:r]
         Vh = X[r:]  # Newmark: velocities; midpoint: momenta p = M v (M = I when None)
@@ -536,8 +538,7 @@ class WaveROM:
 
         Raises ``RuntimeError`` naming the step if Newton does not converge.
         """
-        r, K, V, w = self.r, self.K, self.V, self._w()
-        q, p = (a.copy() for a in _initial_state(q0, v0, r))
+        q, p = (a.copy() for a in _initial_state(q0, v0, self.r))
         dt = check_positive(dt, "dt")
         n_steps = check_int(n_steps, "n_steps", 0)
         every = check_int(every, "every", 1)
@@ -545,39 +546,50 @@ class WaveROM:
         tol = check_positive(tol, "tol")
         if jacobian not in ("fresh", "lazy"):
             raise InputError(f"jacobian must be 'fresh' or 'lazy', got {jacobian!r}")
-        lazy = jacobian == "lazy"
-        requested = backend
-        backend = compiled.resolve_backend(backend)
-        if backend == "numba":
-            if not compiled.is_sine(self.g, self.dg):
-                if requested == "numba":
-                    raise InputError("backend='numba' compiles the wave ROM for g = sin, dg = cos "
-                                     "(sine-Gordon) only; this ROM's g is another function - "
-                                     "pass backend='auto' or 'numpy'")
-                backend = "numpy"
-            else:
-                compiled.kernels()  # compile / load from the cache outside the timed region
+        backend = self._backend(backend)
         t0 = time.perf_counter()
         n_out = n_steps // every + 1
-        Q, P = np.empty((r, n_out)), np.empty((r, n_out))
+        Q, P = np.empty((self.r, n_out)), np.empty((self.r, n_out))
         Q[:, 0], P[:, 0] = q, p
+        loop = self._run_compiled if backend == "numba" else self._run_numpy
+        info = loop(q, p, dt, n_steps, every, tol, max_newton, jacobian == "lazy", Q, P)
+        return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
+                          backend, info)
+
+    def _backend(self, backend: str) -> str:
+        """The loop that runs: numba only for the sine nonlinearity (compiled, or loaded from
+        the cache, here - before the timer)."""
+        requested, backend = backend, compiled.resolve_backend(backend)
+        if backend == "numba" and not compiled.is_sine(self.g, self.dg):
+            if requested == "numba":
+                raise InputError("backend='numba' compiles the wave ROM for g = sin, dg = cos "
+                                 "(sine-Gordon) only; this ROM's g is another function - "
+                                 "pass backend='auto' or 'numpy'")
+            return "numpy"
         if backend == "numba":
-            stats = np.zeros(3, dtype=np.int64)
-            C = np.ascontiguousarray
-            rnorm = compiled.kernels()["_wave_sine_run"](
-                C(K.T), C(V), C(V.T), C(w, dtype=float), C(q), C(p), dt, n_steps, every, tol,
-                max_newton, lazy, _LAZY_THETA, Q, P, stats)
-            if stats[0] > 0:
-                k = int(stats[0])
-                raise StepFailedError(f"reduced Newton did not converge at step {k} "
-                                      f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}; try a smaller dt")
-            if stats[0] < 0:
-                raise np.linalg.LinAlgError(f"Singular matrix (the Newton Jacobian at step "
-                                            f"{-int(stats[0])})")
-            info = {"newton_iterations": int(stats[2]), "jacobians": int(stats[1])}
-            return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
-                              backend, info)
-        eye = np.eye(r)
+            compiled.kernels()
+        return backend
+
+    def _run_compiled(self, q, p, dt, n_steps, every, tol, max_newton, lazy, Q, P) -> dict:
+        """:meth:`simulate`'s loop compiled (``compiled._wave_sine_run``); fills Q, P."""
+        stats = np.zeros(3, dtype=np.int64)
+        C = np.ascontiguousarray
+        rnorm = compiled.kernels()["_wave_sine_run"](
+            C(self.K.T), C(self.V), C(self.V.T), C(self._w(), dtype=float), C(q), C(p), dt,
+            n_steps, every, tol, max_newton, lazy, _LAZY_THETA, Q, P, stats)
+        if stats[0] > 0:
+            k = int(stats[0])
+            raise StepFailedError(f"reduced Newton did not converge at step {k} "
+                                  f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}; try a smaller dt")
+        if stats[0] < 0:
+            raise np.linalg.LinAlgError(f"Singular matrix (the Newton Jacobian at step "
+                                        f"{-int(stats[0])})")
+        return {"newton_iterations": int(stats[2]), "jacobians": int(stats[1])}
+
+    def _run_numpy(self, q, p, dt, n_steps, every, tol, max_newton, lazy, Q, P) -> dict:
+        """:meth:`simulate`'s loop in numpy (the reference); fills Q, P."""
+        K, V, w = self.K, self.V, self._w()
+        eye = np.eye(self.r)
         J = None
         n_it = n_jac = 0
         j = 1
@@ -613,5 +625,4 @@ class WaveROM:
             if (k + 1) % every == 0:
                 Q[:, j], P[:, j] = q, p
                 j += 1
-        return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
-                          backend, {"newton_iterations": n_it, "jacobians": n_jac})
+        return {"newton_iterations": n_it, "jacobians": n_jac}
