@@ -110,7 +110,8 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
               "lopinf": ("L-OpInf", "C0", "o", 10, "none"),
               "lopinf_nsd": ("L-OpInf, Kh <= 0", "C1", "D", 7, "none"),
               "lopinf_del": ("L-OpInf, DEL data", "C4", "s", 8, "none"),
-              "lopinf_fd": ("L-OpInf, finite differences", "C5", "v", 7, "none")}
+              "lopinf_fd": ("L-OpInf, finite differences", "C5", "v", 7, "none"),
+              "lopinf_mass_I": ("L-OpInf, Mh = I", "C6", "P", 7, "none")}
     for method, (label, color, marker, size, face) in styles.items():
         sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
         if not sel:

@@ -120,9 +120,11 @@ def test_beam_unseen_ic_demo_quick(quick_demo):
     tmp_path, m = quick_demo("beam_unseen_ic")
     assert m["train_a"] == [0.2, 0.3, 0.4, 0.5] and m["test_a"] == [0.1, 0.6]
     assert {x["method"] for x in m["roms"]} == {"lopinf", "lopinf_fd", "lopinf_mass_I", "intrusive"}
+    assert {x["basis"] for x in m["roms"]} == {"euclidean-block", "mass-orthonormal"}
     for x in m["roms"]:
         assert x["stable"] and x["test_error"] >= 0.5 * x["projection_error_test"]
-    assert (tmp_path / "error_vs_r.png").stat().st_size > 10_000
+    for png in ("error_vs_r.png", "error_vs_r_mass_orthonormal.png"):
+        assert (tmp_path / png).stat().st_size > 10_000
 
 
 def test_report_reads_the_shared_vocabulary(quick_demo, tmp_path):
