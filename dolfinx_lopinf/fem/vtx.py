@@ -257,6 +257,29 @@ def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name
     V = _space(V)
     comm = V.mesh.comm
     state_map = _default_map(V, state_map)
+    S, t = _checked_write(V, path, states, times, state_map, rows, fill, name, engine)
+    local = _scatter(V, S, state_map)
+    del S
+
+    def write(bp: Path):
+        f = dolfinx.fem.Function(V, name=name)
+        try:
+            writer = dolfinx.io.VTXWriter(comm, bp, [f], engine=engine)
+        except RuntimeError as exc:
+            raise InputError(f"VTX cannot write this space ({exc}); VTX writes (discontinuous) "
+                             "Lagrange spaces only - interpolate into one first") from None
+        with writer:
+            for k, tk in enumerate(t):
+                _set(f, local[:, k])
+                writer.write(float(tk))
+
+    return _replace_folder(comm, Path(path).absolute(), write)
+
+
+def _checked_write(V, path, states, times, state_map, rows, fill, name, engine):
+    """write_vtx's checks, the same verdict on every rank (an InputError before anything is
+    written); returns rank 0's (states with every row, times) and the times on every rank."""
+    comm = V.mesh.comm
     problem, S, t = None, None, None
     if engine not in _ENGINES:
         problem = f"engine must be one of {_ENGINES}, got {engine!r}"
@@ -271,27 +294,21 @@ def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name
         if problem is None:
             problem, t = _times_problem(times, S.shape[1])
     _verdict(comm, problem)
-    t = comm.bcast(t, root=0) if comm.size > 1 else t
-    local = _scatter(V, S, state_map)
-    del S
+    return S, (comm.bcast(t, root=0) if comm.size > 1 else t)
 
-    target = Path(path).absolute()
+
+def _replace_folder(comm, target: Path, write) -> Path:
+    """``write(folder)`` (collective) fills a new folder in a temporary directory beside
+    ``target``, which then replaces ``target`` (one ``os.replace`` on rank 0; a previous
+    version is moved aside first and put back if the move fails). On any error nothing of the
+    new folder remains and ``target`` is as it was."""
     tmp = None
     if comm.rank == 0:
         tmp = tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
     tmp = comm.bcast(tmp, root=0) if comm.size > 1 else tmp
     try:
-        f = dolfinx.fem.Function(V, name=name)
         bp = Path(tmp) / target.name
-        try:
-            writer = dolfinx.io.VTXWriter(comm, bp, [f], engine=engine)
-        except RuntimeError as exc:
-            raise InputError(f"VTX cannot write this space ({exc}); VTX writes (discontinuous) "
-                             "Lagrange spaces only - interpolate into one first") from None
-        with writer:
-            for k, tk in enumerate(t):
-                _set(f, local[:, k])
-                writer.write(float(tk))
+        write(bp)
         comm.barrier()
         err = None
         if comm.rank == 0:
