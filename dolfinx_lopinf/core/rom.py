@@ -85,7 +85,6 @@ def _structure_problems(name, A):
     return out
 
 
-
 def _affine_loop(G, x, forcing, n_steps: int, every: int, X, backend: str) -> None:
     """x <- G x (+ f_k) for ``n_steps`` steps, x stored in X[:, j] after every ``every``-th
     step (X[:, 0] holds x_0): the compiled loop (``compiled.affine_run``) or the numpy
@@ -96,7 +95,8 @@ def _affine_loop(G, x, forcing, n_steps: int, every: int, X, backend: str) -> No
         G, x = np.ascontiguousarray(G), np.ascontiguousarray(x)
         if forcing is None:
             compiled.affine_run(G, x, None, n_steps, 0, every, X, j)
-        for k0, k1, F in forcing or ():
+            return
+        for k0, k1, F in forcing:
             j = compiled.affine_run(G, x, np.ascontiguousarray(F.T), k1 - k0, k0, every, X, j)
         return
     for k0, k1, F in forcing or [(0, n_steps, None)]:
@@ -107,6 +107,7 @@ def _affine_loop(G, x, forcing, n_steps: int, every: int, X, backend: str) -> No
             if (k0 + i + 1) % every == 0:
                 X[:, j] = x
                 j += 1
+
 
 @dataclass(frozen=True)
 class Trajectory:

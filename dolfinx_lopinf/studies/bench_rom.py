@@ -49,12 +49,11 @@ WARM_UP = "from dolfinx_lopinf.core import compiled; print(compiled.warm_up())"
 
 def compile_seconds() -> dict:
     """Cold compile (fresh NUMBA_CACHE_DIR) and cache-load seconds, each in a new process."""
-    code = WARM_UP
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)
         for key in ("cold_compile_s", "cache_load_s"):
-            res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+            res = subprocess.run([sys.executable, "-c", WARM_UP], env=env, capture_output=True,
                                  text=True, check=True)
             out[key] = float(res.stdout.strip().splitlines()[-1])
     return out
