@@ -12,14 +12,6 @@ import importlib.util
 if importlib.util.find_spec("dolfinx_solver") is not None:  # the PyPI wheel
     import dolfinx_solver  # noqa: F401  (orders MPI ahead of the compiled bindings)
 
-# With numba installed, dolfinx.fem.petsc loads libpetsc with RTLD_GLOBAL (llvmlite's
-# load_library_permanently, for its numba_utils); the wheel's HDF5 1.14 then shadows h5py's
-# own bundled HDF5 and a later `import h5py` (e.g. by opinf, the peers extra) fails with
-# "ValueError: Not a datatype". h5py imported first binds its own library (measured: import,
-# write and read back, opinf's save/load all work after dolfinx.fem.petsc).
-if importlib.util.find_spec("numba") is not None and importlib.util.find_spec("h5py") is not None:
-    import h5py  # noqa: F401
-
 try:
     import dolfinx
     import dolfinx.fem

@@ -47,6 +47,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import functools
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -90,16 +91,42 @@ def have_opinf() -> bool:
     return True
 
 
+def _import_h5py_own_hdf5():
+    """Import h5py so that it binds its own bundled HDF5, whatever was imported before.
+
+    With numba installed, ``dolfinx.fem.petsc`` loads libpetsc - and with it the DOLFINx
+    wheel's HDF5 - into the process's global symbol scope; an h5py imported afterwards then
+    resolves HDF5's global type identifiers to that other copy and fails with "Not a
+    datatype". Loading h5py's extension modules with ``RTLD_DEEPBIND`` puts their own
+    dependencies (h5py.libs/libhdf5) ahead of the global scope, so the import order of the
+    user's script does not matter. Nothing is done when h5py is already imported or the
+    platform has no ``RTLD_DEEPBIND`` (macOS, Windows: no such global loading there).
+    """
+    import os
+
+    if "h5py" in sys.modules or not hasattr(os, "RTLD_DEEPBIND"):
+        return
+    flags = sys.getdlopenflags()
+    sys.setdlopenflags(flags | os.RTLD_DEEPBIND)
+    try:
+        import h5py  # noqa: F401
+    except ImportError:  # no h5py: opinf's own import reports it
+        pass
+    finally:
+        sys.setdlopenflags(flags)
+
+
 def _opinf():
     try:
+        _import_h5py_own_hdf5()
         import opinf
     except ImportError as exc:
         raise ImportError(f"the opinf peer baseline needs the optional package opinf: "
                           f"{INSTALL_HINT}") from exc
-    except ValueError as exc:  # h5py's "Not a datatype": see dolfinx_lopinf.fem._dolfinx
-        raise ImportError("opinf could not import h5py in this process (with numba installed, "
-                          "dolfinx.fem.petsc loads PETSc's HDF5 globally first): import "
-                          "dolfinx_lopinf (or h5py) before dolfinx.fem.petsc in your script") from exc
+    except ValueError as exc:  # h5py bound to another HDF5 ("Not a datatype")
+        raise ImportError("opinf could not import h5py in this process: its HDF5 clashes with "
+                          "another HDF5 loaded before it (e.g. by PETSc); import h5py (or "
+                          "dolfinx_lopinf.studies.peers) before dolfinx.fem.petsc") from exc
     major_minor = tuple(int(x) for x in opinf.__version__.split(".")[:2])
     if major_minor != (0, 6):
         raise ImportError(f"the opinf peer baseline is written for opinf 0.6.x, found "

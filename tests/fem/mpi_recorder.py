@@ -5,7 +5,6 @@ import sys
 import numpy as np
 
 import dolfinx_lopinf as lo
-import dolfinx_lopinf.fem._dolfinx  # noqa: F401  (binds h5py's HDF5 before dolfinx.fem.petsc: see there)
 import dolfinx
 import dolfinx.fem.petsc
 import ufl
