@@ -169,15 +169,17 @@ def main(argv=None):
             refit = model.predict(n_train, inputs=train_load)
             cert = model.report["certificate"]
             rows.append(harness.rom_row(
-                method, r, scheme=model.scheme, mass=model.report["mass"], why=model.report["why"],
-                scheme_errors=model.report["scheme_errors"],
+                method, r, scheme=model.scheme.spec, mass=model.report["mass"],
+                damping=model.report["damping"], why=model.report["why"],
+                identification=model.report["identification"].get("why", ""),
+                candidate_errors=model.report.get("candidate_errors", {}),
                 train_error=lo.relative_error(train.Y, refit.Y),
                 test_error=lo.relative_error(test.Y, pred.Y),
                 infer_seconds=infer_s, solve_seconds=cert["seconds"],
                 solver=cert["solver"], rom_seconds=pred.seconds, rom_backend=pred.backend,
                 rom_seconds_numpy=numpy_s,
                 speedup=fom_test_s / pred.seconds, min_eig_K=cert["min_eig_K"],
-                min_eig_C=cert["min_eig_C"],
+                min_eig_C=cert.get("min_eig_C"),
                 projection_error_test=model.basis.projection_error(test.Q),
                 stable=harness.stable(pred.Qh)))
             preds[(method, r)] = pred

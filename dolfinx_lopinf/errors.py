@@ -73,6 +73,11 @@ class NonLagrangianWarning(LOpInfWarning, RuntimeWarning):
     ``lagrangian=False`` to :class:`dolfinx_lopinf.LagrangianROM` to say so."""
 
 
+class SchemeMismatchWarning(LOpInfWarning):
+    """The integrator the caller named fits the data clearly worse than another scheme; the
+    message names the better one."""
+
+
 class InputCorrectedWarning(LOpInfWarning):
     """An input was made consistent rather than refused (e.g. an initial state moved onto its
     Dirichlet conditions); the message says what changed and by how much."""

@@ -148,7 +148,9 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
             raise InputError("a weighted POD mixes blocks; pass either blocks or weight")
         return _weighted_pod(Q, r, check_square(weight, "weight"), rank_rtol)
     blocks = check_blocks(blocks, Q.shape[0])
-    blocks = {"all": np.arange(Q.shape[0])} if not blocks else blocks
+    if not blocks:
+        U, s, _ = np.linalg.svd(Q, full_matrices=False)
+        return from_svd(U, s, r, rank_rtol)
     sizes = _split(r, list(blocks))
     V = np.zeros((Q.shape[0], r))
     singular_values, out_blocks, start = {}, {}, 0
@@ -167,6 +169,17 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
         out_blocks[name] = (rows, np.arange(start, start + size))
         start += size
     return Basis(V, singular_values, out_blocks)
+
+
+def from_svd(U, s, r: int, rank_rtol: float = 1e-12) -> Basis:
+    """The POD basis of r vectors from a thin SVD Q = U diag(s) W^T already computed (so a
+    caller that needs more modes, e.g. to identify the time integrator, pays one SVD)."""
+    rank = int((s > rank_rtol * s[0]).sum()) if s.size and s[0] > 0 else 0
+    if r > rank:
+        raise InputError(
+            f"block 'all': asked for {r} basis vectors but the snapshots have numerical rank "
+            f"{rank} (singular values {s[: r + 1]}); lower r or record richer data")
+    return Basis(U[:, :r].copy(), {"all": s}, {"all": (np.arange(U.shape[0]), np.arange(r))})
 
 
 def _weighted_pod(Q, r, W, rank_rtol):

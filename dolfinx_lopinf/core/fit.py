@@ -5,29 +5,29 @@ L-OpInf -> a reduced model that carries its basis, scheme and operators (numpy o
     traj = model.predict(n_steps=2000, inputs=u)    # from rest, or q0=/v0= full or reduced
     tip = traj.Y;  field = model.reconstruct(traj.Qh, rows=...)
 
-Which data relation. A time loop's snapshots obey the relation of its integrator exactly,
-and L-OpInf fitted to that relation identifies the operators of the *discrete* dynamics:
+Which data relation (``scheme=``). A time loop's snapshots obey the discrete equations of its
+integrator exactly (:mod:`dolfinx_lopinf.core.schemes`); L-OpInf fitted to that relation
+identifies the operators of the *discrete* dynamics, and the ROM is stepped with the same
+scheme, so it reproduces the loop's numerical dissipation. ``scheme`` is a
+:mod:`~dolfinx_lopinf.core.schemes` object (``schemes.GeneralizedAlpha(rho_inf=0.8)``,
+``schemes.Newmark(beta, gamma)``, ``schemes.HHT(alpha)``, ...), a name (``"newmark"``,
+``"midpoint"``, ``"central_difference"``, ``"continuous"`` = 8th-order differences), or
+``"auto"``: the family and its parameters are identified from the data
+(:func:`dolfinx_lopinf.core.identify.identify`: the relation's residual over the schemes
+users run, then refined), with 8th-order differences as a fallback candidate.
 
-* ``"newmark"`` - average-acceleration Newmark (gamma = 1/2, beta = 1/4), which for a linear
-  system is also the midpoint variational integrator; three-point relation
-  D2 + Ch D1 + Kh Qbar = Bh Ubar (:func:`dolfinx_lopinf.core.ddt.newmark_data`); ROM: Newmark.
-* ``"midpoint"`` - the same relation, the ROM integrated with the midpoint rule (inputs at
-  the step midpoints), as our own FOM does.
-* ``"continuous"`` - 8th-order finite differences (any integrator, an O((dt omega)^2) bias for
-  modes the step does not resolve); ROM: Newmark at the data's dt.
-* ``"auto"`` - each candidate is fitted on the first ``1 - holdout`` of every trajectory and
-  predicts the held-back end by the Newmark recurrence its ROM runs, started from the two
-  states there (relative error, the worst trajectory counts). ``model.report["why"]`` and
-  ``["candidate_errors"]`` say what was compared.
-
-Which reduced mass (``mass=``): Mh = I, or Mh learned (:mod:`dolfinx_lopinf.core.mass`), or
-``"auto"`` (default): the candidates (mass model x relation) are compared on the held-back
-end as above, and the simplest one - in the order Mh = I before learned, Newmark before
-differences - whose error is within ``MARGIN`` = 1.5 of the best is kept. A near-tie (which
-rounding or another BLAS could flip) is thus decided by that order, never by the last bits;
-a learned mass must earn its place by a clear margin. An explicit scheme whose held-back
-error is 3x worse than another relation's gets a warning naming both (the data contradict
-the claim).
+Which model (``mass=``, ``damping=``). Mh = I or learned (:mod:`dolfinx_lopinf.core.mass`),
+Ch >= eps I or none. With ``"auto"`` every candidate (mass model x damping x relation) is
+fitted on the first ``1 - holdout`` of every trajectory and predicts the held-back end with
+its scheme's multistep recurrence, started from the samples before it (relative error, the
+worst trajectory counts). The simplest candidate - Mh = I before learned, undamped before
+damped, the scheme's relation before differences - whose error is within ``MARGIN`` of the
+best is kept: a near-tie (which rounding or another BLAS could flip) is decided by that order,
+never by the last bits, and a richer model must earn its place by a clear margin. A learned
+mass that is the identity up to a scale in every direction the data see is not a different
+model: it is replaced by Mh = I (the data cannot separate them; the structurally exact model
+extrapolates better). A named scheme whose relation residual is 3x another's gets a
+:class:`~dolfinx_lopinf.errors.SchemeMismatchWarning` naming the better one.
 """
 
 from __future__ import annotations
@@ -37,24 +37,32 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import ddt
-from .basis import Basis, pod
-from ..errors import InputError, LOpInfWarning
+from . import compiled, schemes
+from .basis import Basis, from_svd, pod
+from ._checks import as_real_array
+from ..errors import InputError, SchemeMismatchWarning, warn
+from .identify import Residual, identify, standard_members
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
-from .rom import LagrangianROM, Trajectory, load_rom, save_rom
-from .snapshots import Snapshots
+from .rom import LagrangianROM, Trajectory, _affine_loop, load_rom, save_rom
+from .snapshots import Snapshots, check_scheme
 
-SCHEMES = ("auto", "newmark", "midpoint", "continuous")
 MASS_MODELS = ("auto", "identity", "learned")
-_CANDIDATES = ("newmark", "continuous")  # "midpoint" has the same data relation as "newmark"
-#: (mass model, relation) from the simplest: Mh = I before a learned Mh (an SDP, which can
-#: switch modes off), the exact relation of the variational integrators before differences.
-_PREFERENCE = (("identity", "newmark"), ("identity", "continuous"),
-               ("learned", "newmark"), ("learned", "continuous"))
-#: The first candidate of :data:`_PREFERENCE` whose held-back error is within this factor
-#: of the best one wins.
+DAMPING_MODELS = ("auto", True, False)
+#: The first candidate (in the order of simplicity) whose held-back error is within this
+#: factor of the best one wins.
 MARGIN = 1.5
+#: A learned mass whose eigenvalues, in the metric of the data, lie within this relative
+#: spread of their mean is the identity up to scale (see :func:`_is_scaled_identity`).
+IDENTITY_SPREAD = 0.05
+#: The integrator is identified in up to this many POD coordinates, those whose singular
+#: values exceed ID_RANK_RTOL of the largest (:func:`_identification_pieces`).
+ID_MAX_R = 24
+ID_RANK_RTOL = 1e-10
+#: A named scheme whose relation residual exceeds the best one's by this factor is contradicted.
+MISMATCH = 3.0
+#: ... and exceeds this (below it both relations hold to the data's accuracy)
+MISMATCH_FLOOR = 1e-9
 
 
 def _mass_candidates(mass):
@@ -68,26 +76,23 @@ def _mass_candidates(mass):
     return ("identity", "learned")
 
 
-class SchemeMismatchWarning(LOpInfWarning):
-    """The scheme the caller named fits the data clearly worse than another relation."""
-
-
 @dataclass(frozen=True)
 class ReducedModel:
     """A fitted L-OpInf model with its basis: predict, reconstruct, save/load.
 
     Attributes:
-        rom: the reduced operators (:class:`~dolfinx_lopinf.core.rom.LagrangianROM`).
+        rom: the reduced operators and scheme (:class:`~dolfinx_lopinf.core.rom.LagrangianROM`).
         basis: the POD basis (``basis.V``: (n, r)).
-        scheme: the data relation fitted (``"newmark"``, ``"midpoint"``, ``"continuous"``).
+        scheme: the data relation fitted (a :mod:`~dolfinx_lopinf.core.schemes` object;
+            compares equal to its name, e.g. ``model.scheme == "newmark"``).
         dt: the time step of the snapshots (the ROM's default step).
-        report: how the fit went - chosen scheme and held-back errors per candidate,
-            the solver certificate, data sizes.
+        report: how the fit went - the scheme identified and why, held-back errors per
+            candidate, the solver certificate, data sizes.
     """
 
     rom: LagrangianROM
     basis: Basis
-    scheme: str
+    scheme: schemes.Scheme
     dt: float
     report: dict = field(default_factory=dict)
 
@@ -98,7 +103,7 @@ class ReducedModel:
     def _reduced(self, x, name):
         if x is None:
             return np.zeros(self.r)
-        x = np.asarray(x, dtype=float)
+        x = as_real_array(x, name)
         if x.shape == (self.r,):
             return x
         if x.shape == (self.basis.n,):
@@ -112,18 +117,17 @@ class ReducedModel:
         """Integrate the ROM with its scheme from (q0, v0) (full or reduced; rest by default).
 
         Args:
-            n_steps or t_end: how far (one of the two).
-            inputs: for a forced model, u(t) -> (m,) or an (m, n_steps + 1) array (Newmark:
-                at t_0 .. t_n; midpoint: (m, n_steps) at the step midpoints).
+            n_steps or t_end: how far (one of the two; t_end must be a whole number of steps).
+            inputs: for a forced model, u(t) -> (m,) (evaluated where the scheme applies its
+                load) or an (m, n_steps + 1) array at t_0 .. t_n; None: the free response.
             dt: time step (default: the snapshots' dt); every: keep every ``every``-th step.
-            backend: the time loop, as in :meth:`~dolfinx_lopinf.core.rom.LagrangianROM.simulate`
-                (``"auto"``: compiled when numba is installed, else numpy).
+            backend: the time loop, as in :meth:`~dolfinx_lopinf.core.rom.LagrangianROM.simulate`.
         """
         dt = self.dt if dt is None else dt
         if (n_steps is None) == (t_end is None):
             raise InputError("give exactly one of n_steps and t_end")
         if n_steps is None:
-            n_steps = int(round(t_end / dt))
+            n_steps = _whole_steps(t_end, dt)
         return self.rom.simulate(self._reduced(q0, "q0"), self._reduced(v0, "v0"), dt, n_steps,
                                  inputs=inputs, every=every, backend=backend)
 
@@ -133,7 +137,7 @@ class ReducedModel:
 
     def save(self, path):
         """One ``.npz`` (operators, basis, scheme, report); returns the path written."""
-        meta = dict(self.rom.meta, fit_scheme=self.scheme, fit_dt=self.dt,
+        meta = dict(self.rom.meta, fit_scheme=self.scheme.spec, fit_dt=self.dt,
                     fit_report=plain(self.report))
         rom = LagrangianROM(K=self.rom.K, M=self.rom.M, C=self.rom.C, B=self.rom.B, E=self.rom.E,
                             meta=meta, scheme=self.rom.scheme, lagrangian=self.rom.lagrangian)
@@ -146,11 +150,29 @@ class ReducedModel:
             raise InputError(f"{path} holds a ROM without the basis and scheme of lo.fit; load it "
                              "with lo.load_rom")
         basis = Basis(extras["basis_rows"], {}, {})
-        return cls(rom, basis, rom.meta["fit_scheme"], float(rom.meta["fit_dt"]),
-                   rom.meta.get("fit_report", {}))
+        return cls(rom, basis, schemes.from_spec(rom.meta["fit_scheme"]),
+                   float(rom.meta["fit_dt"]), rom.meta.get("fit_report", {}))
+
+
+def _whole_steps(t_end, dt) -> int:
+    """t_end / dt as a whole number of steps, or an InputError saying it is not one."""
+    try:
+        t = float(t_end)
+    except (TypeError, ValueError):
+        raise InputError(f"t_end must be a number, got {t_end!r}") from None
+    n = t / dt
+    if not np.isfinite(n) or n < 0.5 or abs(n - round(n)) > 1e-6 * max(n, 1.0):
+        raise InputError(f"t_end = {t_end!r} is not a whole number (>= 1) of steps dt = {dt:.6g} "
+                         f"({n:.6g} steps); pass n_steps, or t_end = k * dt")
+    return int(round(n))
 
 
 def _trajectories(snapshots) -> list[Snapshots]:
+    if snapshots is None:
+        raise InputError("fit got None instead of snapshots (SnapshotRecorder.snapshots() returns "
+                         "the data on rank 0 only: fit there)")
+    if hasattr(snapshots, "snapshots") and hasattr(snapshots, "record"):
+        raise InputError("fit got the SnapshotRecorder itself; pass its data: lo.fit(rec.snapshots(), r)")
     trajs = [snapshots] if isinstance(snapshots, Snapshots) else list(snapshots)
     if not trajs:
         raise InputError("fit needs at least one Snapshots")
@@ -164,15 +186,18 @@ def _trajectories(snapshots) -> list[Snapshots]:
             raise InputError(f"snapshots[{i}] has {s.n_states} state rows, snapshots[0] has "
                              f"{first.n_states}: all trajectories must be of the same system")
         if abs(s.dt - first.dt) > 1e-9 * first.dt:
-            raise InputError(f"snapshots[{i}] has dt = {s.dt:.6g}, snapshots[0] dt = {first.dt:.6g}:"
-                             " the data relation and the ROM's scheme need one time step")
+            raise InputError(f"snapshots[{i}] has dt = {s.dt!r}, snapshots[0] dt = {first.dt!r} "
+                             f"(relative difference {abs(s.dt - first.dt) / first.dt:.2g}): the "
+                             "data relation and the ROM's scheme need one time step")
         if (s.U is None) != (first.U is None) or (s.U is not None and s.U.shape[0] != first.U.shape[0]):
             raise InputError(f"snapshots[{i}] and snapshots[0] differ in their inputs "
                              f"({'none' if s.U is None else s.U.shape[0]} vs "
                              f"{'none' if first.U is None else first.U.shape[0]}): give every "
                              "trajectory the same inputs, or none")
-        if (s.Y is None) != (first.Y is None):
-            raise InputError(f"snapshots[{i}] and snapshots[0] differ in having outputs Y")
+        if (s.Y is None) != (first.Y is None) or (s.Y is not None and s.Y.shape[0] != first.Y.shape[0]):
+            raise InputError(f"snapshots[{i}] and snapshots[0] differ in their outputs Y "
+                             f"({'none' if s.Y is None else s.Y.shape[0]} vs "
+                             f"{'none' if first.Y is None else first.Y.shape[0]} rows)")
     for i, s in enumerate(trajs):
         if s.Y is not None and s.output_times is not None and len(s.output_times) != len(s.times):
             raise InputError(f"snapshots[{i}] records outputs on their own time grid; fit needs "
@@ -180,184 +205,282 @@ def _trajectories(snapshots) -> list[Snapshots]:
     return trajs
 
 
-def _relation(scheme, Qh, times, U):
-    """(states, dQ, ddQ, inputs) of the data relation of ``scheme`` for one trajectory."""
-    if scheme == "continuous":
-        q, dq, ddq = ddt.derivatives(Qh, times)
-        h = ddt.HALF_WIDTH
-        return q, dq, ddq, None if U is None else U[:, h:-h]
-    Qbar, D1, D2, Ubar = ddt.newmark_data(Qh, times, U)
-    return Qbar, D1, D2, Ubar
+def _stacked(parts):
+    Qk, Qc, Qm = (np.hstack([p[i] for p in parts]) for i in range(3))
+    Uf = None if parts[0][3] is None else np.hstack([p[3] for p in parts])
+    return Qk, Qc, Qm, Uf
 
 
 def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity"):
     """L-OpInf on the stacked relation data of several trajectories."""
-    data = [_relation(scheme, *p) for p in pieces]
-    Q, dQ, ddQ = (np.hstack([d[i] for d in data]) for i in range(3))
-    U = None if data[0][3] is None else np.hstack([d[3] for d in data])
-    return infer_mechanical(Q, dQ if damping else None, ddQ, U, damping=damping, eps=eps,
+    Qk, Qc, Qm, Uf = _stacked([_relation_data(scheme, p) for p in pieces])
+    return infer_mechanical(Qk, Qc if damping else None, Qm, Uf, damping=damping, eps=eps,
                             ridge=ridge, strict=strict, mass=mass)
 
 
-def _recurrence_error(ops, Qh, U, dt):
-    """Relative error of the Newmark three-point recurrence of ``ops`` over Qh (r, K), started
-    from its first two columns (the prediction the ROM's scheme makes)."""
-    r, K = Qh.shape
-    I = np.eye(r) if ops.M is None else ops.M
-    C = np.zeros((r, r)) if ops.C is None else ops.C
-    Ap = I / dt**2 + C / (2 * dt) + ops.K / 4
-    A0 = 2 * I / dt**2 - ops.K / 2
-    Am = I / dt**2 - C / (2 * dt) + ops.K / 4
-    Ubar = None if U is None else (U[:, 2:] + 2 * U[:, 1:-1] + U[:, :-2]) / 4
-    forcing = np.zeros((r, K - 2)) if Ubar is None or ops.B is None else ops.B @ Ubar
-    Ap_inv = np.linalg.inv(Ap)  # r x r, applied once per step
-    pred = np.empty_like(Qh)
-    pred[:, :2] = Qh[:, :2]
-    for k in range(1, K - 1):
-        pred[:, k + 1] = Ap_inv @ (forcing[:, k - 1] + A0 @ pred[:, k] - Am @ pred[:, k - 1])
-    scale = np.linalg.norm(Qh[:, 2:])
-    err = np.linalg.norm(pred[:, 2:] - Qh[:, 2:]) / max(scale, np.finfo(float).tiny)
+def _relation_data(scheme, piece):
+    Qh, times, U, ti, Vh, Ah = piece
+    if Vh is not None and Ah is not None and isinstance(scheme, schemes.GeneralizedAlpha):
+        return scheme.state_relation(Qh, Vh, Ah, times, U, ti)
+    return scheme.relation(Qh, times, U, ti)
+
+
+def _held_back_error(ops, scheme, held, dt, backend) -> float:
+    """Relative error of the scheme's multistep recurrence of ``ops`` over the held-back
+    samples, started from the samples before them (``held`` = (Qh, times, U, ti))."""
+    Qh, times, U, ti = held
+    r = Qh.shape[0]
+    M = np.eye(r) if ops.M is None else ops.M
+    Gc, Hc, cu, tau_rel = scheme.recurrence(M, ops.C, ops.K, ops.B, dt)
+    lead = Gc.shape[0] // r  # samples that start the recurrence
+    n = Qh.shape[1] - lead
+    forcing = None
+    if U is not None and Hc is not None:
+        t_load = times[0] + (np.arange(n + len(cu) - 1) + tau_rel) * dt
+        F = schemes.sample_inputs(U, times if ti is None else ti, t_load, outside="nan")
+        W = sum(c * F[:, j:j + n] for j, c in enumerate(cu))
+        known = np.all(np.isfinite(W), axis=0)
+        n = int(np.argmin(known)) if not known.all() else n  # up to the last recorded load
+        if n < 1:
+            return float("inf")
+        forcing = [(0, n, Hc @ W[:, :n])]
+    X = np.empty((Gc.shape[0], n + 1))
+    x = np.ascontiguousarray(Qh[:, :lead].T.ravel())
+    X[:, 0] = x
+    with np.errstate(all="ignore"):
+        _affine_loop(Gc, x, forcing, n, 1, X, backend)
+    pred = X[-r:, 1:]
+    ref = Qh[:, lead:lead + n]
+    err = np.linalg.norm(pred - ref) / max(np.linalg.norm(ref), np.finfo(float).tiny)
     return float(err) if np.isfinite(err) else float("inf")
 
 
-def _held_back_errors(pieces, damping, eps, ridge, holdout, dt, masses):
-    """Held-back prediction error of every (mass model, relation) candidate (module docstring)."""
+def _split(pieces, holdout):
+    """(fit parts, held-back parts): the first 1 - holdout of every trajectory, and the rest
+    with the samples before it that start a four-point recurrence."""
     fit_part, held = [], []
-    for Qh, times, U in pieces:
+    for Qh, times, U, ti, Vh, Ah in pieces:
         K = Qh.shape[1]
         k_cut = int(round((1 - holdout) * K))
-        if k_cut < 2 * ddt.HALF_WIDTH + 3 or K - k_cut < 4:
-            raise InputError(f"a trajectory of {K} samples is too short to compare schemes on a "
-                             f"held-back {holdout:.0%}; record longer or name the scheme")
-        fit_part.append((Qh[:, :k_cut], times[:k_cut], None if U is None else U[:, :k_cut]))
-        # the held-back end, from the two samples before it so the recurrence starts there
-        held.append((Qh[:, k_cut - 2:], None if U is None else U[:, k_cut - 2:]))
-    errors = {}
-    for mass in masses:
-        for scheme in _CANDIDATES:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                try:
-                    ops = _fit_relation(scheme, fit_part, damping, eps, ridge, False, mass)
-                except (RuntimeError, np.linalg.LinAlgError):  # a failed candidate loses
-                    errors[(mass, scheme)] = float("inf")
-                    continue
-            errors[(mass, scheme)] = max(_recurrence_error(ops, Qh, U, dt) for Qh, U in held)
-    return errors
+        if k_cut < 17 or K - k_cut < 4:
+            raise InputError(f"a trajectory of {K} samples is too short to compare models on a "
+                             f"held-back {holdout:.0%} (it needs >= 17 samples before and 4 after "
+                             "the cut); record longer, or pass scheme=, mass= and damping= to "
+                             "skip the comparison")
+        def cut(a, k=k_cut):
+            return None if a is None else a[:, :k]
+
+        U_fit = U[:, :k_cut] if U is not None and ti is None else U
+        fit_part.append((Qh[:, :k_cut], times[:k_cut], U_fit, ti, cut(Vh), cut(Ah)))
+        start = k_cut - 3
+        held.append((Qh[:, start:], times[start:], U[:, start:] if U is not None and ti is None
+                     else U, ti))
+    return fit_part, held
 
 
-def _preferred(errors, allowed):
-    """The first candidate of :data:`_PREFERENCE` among ``allowed`` whose held-back error is
-    within :data:`MARGIN` of the smallest: a simpler model is only given up for a clear gain,
-    so near-ties (which rounding could flip) are decided by the order, not by the last bits."""
-    best = min(errors[c] for c in allowed)
-    for cand in _PREFERENCE:
-        if cand in allowed and errors[cand] <= MARGIN * best:
+def _is_scaled_identity(M, Qh) -> bool:
+    """Whether the learned mass is c I in every direction the data see: the eigenvalues of M
+    in the metric of the data's covariance spread by less than IDENTITY_SPREAD."""
+    W = Qh @ Qh.T
+    w, V = np.linalg.eigh(W)
+    keep = w > 1e-10 * w[-1]
+    Vk = V[:, keep]
+    ev = np.linalg.eigvalsh(Vk.T @ M @ Vk)
+    return bool(ev[-1] - ev[0] <= IDENTITY_SPREAD * abs(ev.mean()))
+
+
+def _candidates(relations, masses, dampings):
+    """(mass, damping, relation) in the order of simplicity (module docstring)."""
+    return [(m, d, rel) for rel in relations for m in masses for d in dampings]
+
+
+def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
+    """Held-back error of every candidate (module docstring)."""
+    fit_part, held = _split(pieces, holdout)
+    backend = compiled.resolve_backend("auto")
+    errors, notes = {}, {}
+    for mass, damping, rel in _candidates(relations, masses, dampings):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass)
+            except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+                errors[(mass, damping, rel)] = float("inf")  # a failed candidate loses
+                notes[(mass, damping, rel)] = str(exc)[:200]
+                continue
+        if mass == "learned" and _is_scaled_identity(ops.M, np.hstack([p[0] for p in fit_part])):
+            notes[(mass, damping, rel)] = "learned Mh = c I: the same model as Mh = I"
+            errors[(mass, damping, rel)] = float("inf")
+            continue
+        errors[(mass, damping, rel)] = max(_held_back_error(ops, schemes.rom_scheme(rel)
+                                                            if isinstance(rel, schemes.FiniteDifferences)
+                                                            else rel, h, dt, backend)
+                                           for h in held)
+    return errors, notes
+
+
+def _preferred(errors, order):
+    """The first candidate of ``order`` whose held-back error is within MARGIN of the best."""
+    best = min(errors[c] for c in order)
+    for cand in order:
+        if errors[cand] <= MARGIN * best:
             return cand
-    return allowed[0]
+    return order[0]
 
 
-def fit(snapshots, r: int, *, scheme: str | None = None, damping: bool = True,
-        mass: str = "auto", basis: Basis | None = None, eps: float = 1e-8,
-        ridge: float = RIDGE, strict: bool = False, holdout: float = 0.25) -> ReducedModel:
+def _damping_candidates(damping):
+    if damping == "auto" and isinstance(damping, str):
+        return (False, True)
+    if damping is True or damping is False or isinstance(damping, np.bool_):
+        return (bool(damping),)
+    raise InputError(f"damping must be True, False or 'auto', got {damping!r} (a string such as "
+                     "'no' or 'False' is not a boolean)")
+
+
+def _label(mass, damping, rel):
+    return f"{mass}/{'damped' if damping else 'undamped'}/{rel.spec}"
+
+
+def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
+        basis: Basis | None = None, eps: float = 1e-8, ridge: float = RIDGE,
+        strict: bool = False, holdout: float = 0.25) -> ReducedModel:
     """Fit an L-OpInf reduced model to one or several recorded trajectories.
 
     Args:
         snapshots: a :class:`~dolfinx_lopinf.Snapshots` or a list of them (trajectories with
             different initial conditions or input histories, same system and dt).
         r: reduced dimension (ignored when ``basis`` is given: its r is used).
-        scheme: ``"auto"``, ``"newmark"``, ``"midpoint"`` or ``"continuous"`` (module
-            docstring); None: the scheme the snapshots were recorded with
+        scheme: the integrator of the data (module docstring): a
+            :mod:`~dolfinx_lopinf.core.schemes` object, a name, or ``"auto"`` (identify it);
+            None: the scheme the snapshots were recorded with
             (``SnapshotRecorder(u, scheme=...)``), else ``"auto"``.
-        damping: fit Ch >= eps I (False: conservative, no Ch).
-        mass: ``"auto"`` (default), ``"identity"`` or ``"learned"``. ``"identity"``: Mh = I,
-            exact in a mass-orthonormal basis, a model-form error in a Euclidean one (what a
-            black box has). ``"learned"``: Mh fitted too, SPD, coordinate-invariant
-            (:mod:`dolfinx_lopinf.core.mass`; beam block basis r = 20: 1.4e-5 vs 8e-4 with Mh = I),
-            but its optimum can switch modes off. ``"auto"``: both, judged with the relations
-            on the held-back end (module docstring); Mh = I unless the learned mass predicts
-            it at least ``MARGIN`` times better. Without cvxpy, auto is Mh = I.
+        damping: ``"auto"`` (default: Ch >= eps I or none, chosen on the held-back end),
+            True or False (conservative: no Ch).
+        mass: ``"auto"`` (default), ``"identity"`` (Mh = I: exact in a mass-orthonormal
+            basis) or ``"learned"`` (Mh fitted too, SPD, coordinate-invariant:
+            :mod:`dolfinx_lopinf.core.mass`). Without cvxpy, auto is Mh = I.
         basis: a :class:`~dolfinx_lopinf.core.basis.Basis` to use; default the POD of all
             trajectories' states (block-diagonal when the snapshots name blocks).
         eps, ridge, strict: as in :func:`~dolfinx_lopinf.infer_mechanical`.
-        holdout: the fraction of every trajectory held back to choose the scheme.
+        holdout: the fraction of every trajectory held back to choose the model.
 
     Returns:
-        :class:`ReducedModel`.
+        :class:`ReducedModel`; ``model.report`` says what was chosen and why.
 
     Example:
         >>> t = np.arange(0, 400) * 0.01
         >>> Q = np.vstack([np.cos(t), np.sin(t), np.cos(2 * t)])   # three coordinates
         >>> model = fit(Snapshots(t, Q), 3, damping=False)
-        >>> model.scheme in ("newmark", "continuous")
+        >>> model.scheme == "newmark"
         True
     """
     if mass not in MASS_MODELS:
         raise InputError(f"mass must be one of {MASS_MODELS}, got {mass!r}")
+    dampings = _damping_candidates(damping)
     trajs = _trajectories(snapshots)
-    scheme = _requested_scheme(trajs, scheme)
+    requested = _requested_scheme(trajs, scheme)
     if not (isinstance(holdout, float) and 0.05 <= holdout <= 0.5):
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
     dt = trajs[0].dt
+    Q_all = np.hstack([s.Q for s in trajs])
+    svd = np.linalg.svd(Q_all, full_matrices=False)[:2]  # one SVD: the basis, identification
     if basis is None:
-        Q_all = np.hstack([s.Q for s in trajs])
-        basis = pod(Q_all, r, blocks=trajs[0].blocks or None)
+        basis = pod(Q_all, r, blocks=trajs[0].blocks) if trajs[0].blocks \
+            else from_svd(*svd, r)
     elif not isinstance(basis, Basis) or basis.n != trajs[0].n_states:
         raise InputError(f"basis must be a Basis with {trajs[0].n_states} rows")
-    pieces = [(basis.project(s.Q), s.times, s.U) for s in trajs]
+    pieces = _pieces(trajs, basis.V.T, basis.weight)
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
-              "dt": dt, "requested_scheme": scheme}
+              "dt": dt, "requested_scheme": requested if isinstance(requested, str) else requested.spec}
+    relation, report["identification"] = _relation_for(requested, _identification_pieces(
+        trajs, svd, basis.r))
+    relations = [relation]
+    if requested == "auto" and not isinstance(relation, schemes.FiniteDifferences):
+        relations.append(schemes.FiniteDifferences())
     masses = _mass_candidates(mass)
-    errors = _held_back_errors(pieces, damping, eps, ridge, holdout, dt, masses)
-    report["candidate_errors"] = {f"{m}/{s}": e for (m, s), e in errors.items()}
-    named = "newmark" if scheme == "midpoint" else scheme
-    allowed = [c for c in errors if scheme == "auto" or c[1] == named]
-    mass_chosen, fitted = _preferred(errors, allowed)
-    chosen = fitted if scheme == "auto" else scheme
-    # per relation, with the chosen mass model
-    report["scheme_errors"] = {s: errors[(mass_chosen, s)] for s in _CANDIDATES}
-    report["why"] = (f"held-back prediction error {errors[(mass_chosen, fitted)]:.3g} "
-                     f"({mass_chosen} mass, {fitted} relation) vs "
-                     + ", ".join(f"{e:.3g} ({m}/{s})" for (m, s), e in errors.items()
-                                 if (m, s) != (mass_chosen, fitted))
-                     + f"; a simpler candidate is kept unless another is {MARGIN:g}x better")
-    if scheme != "auto":
-        _warn_if_mismatched(scheme, named, {s: errors[(mass_chosen, s)] for s in _CANDIDATES})
-    mass = mass_chosen
-    ops = _fit_relation("newmark" if chosen == "midpoint" else chosen, pieces, damping, eps,
-                        ridge, strict, mass)
+    order = _candidates(relations, masses, dampings)
+    if len(order) > 1:
+        errors, notes = _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt)
+        chosen = _preferred(errors, order)
+        report["candidate_errors"] = {_label(*c): e for c, e in errors.items()}
+        if notes:
+            report["candidate_notes"] = {_label(*c): n for c, n in notes.items()}
+        report["why"] = (f"held-back prediction error {errors[chosen]:.3g} ({_label(*chosen)}); "
+                         f"the simplest candidate within {MARGIN:g}x of the best "
+                         f"({min(errors.values()):.3g}) is kept")
+    else:
+        chosen = order[0]
+        report["why"] = "mass, damping and scheme given: nothing to compare"
+    mass, damping, relation = chosen
+    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass)
     E = None
     if trajs[0].Y is not None:
         E = infer_output(np.hstack([p[0] for p in pieces]), np.hstack([s.Y for s in trajs]))
-    report.update(scheme=chosen, mass=mass, certificate={k: v for k, v in ops.certificate.items()
-                                              if isinstance(v, (int, float, str, bool))})
-    rom = LagrangianROM(K=ops.K, M=ops.M, C=ops.C, B=ops.B, E=E,
-                        scheme="midpoint" if chosen == "midpoint" else "newmark",
-                        meta={"method": "lopinf", "fit_scheme": chosen})
-    return ReducedModel(rom, basis, chosen, dt, report)
+    rom_scheme = schemes.rom_scheme(relation)
+    report.update(scheme=relation.spec, rom_scheme=rom_scheme.spec, mass=mass, damping=damping,
+                  certificate={k: v for k, v in ops.certificate.items()
+                               if isinstance(v, (int, float, str, bool))})
+    rom = LagrangianROM(K=ops.K, M=ops.M, C=ops.C, B=ops.B, E=E, scheme=rom_scheme,
+                        meta={"method": "lopinf", "fit_scheme": relation.spec})
+    return ReducedModel(rom, basis, relation, dt, report)
+
+
+def _pieces(trajs, P, weight=None):
+    """[(P Q, times, U, input_times, P V, P A)] per trajectory (P: (r, n) projection)."""
+    def project(a):
+        return None if a is None else P @ (a if weight is None else weight @ a)
+
+    return [(project(s.Q), s.times, s.U, s.input_times, project(s.V), project(s.A)) for s in trajs]
+
+
+def _identification_pieces(trajs, svd, r):
+    """The trajectories in the leading POD coordinates that the scheme is identified in:
+    as many as the data resolve (singular values above ID_RANK_RTOL of the largest), so the
+    truncated modes' closure error does not blur which relation holds, capped by ID_MAX_R
+    and by a quarter of the samples per unknown of the free fit; at least r."""
+    U, s = svd
+    n_sig = int((s > ID_RANK_RTOL * s[0]).sum()) if s[0] > 0 else 1
+    m = 0 if trajs[0].U is None else trajs[0].U.shape[0]
+    n_min = min(len(t.times) for t in trajs)
+    cap = max(1, min(ID_MAX_R, int((n_min / 4 - m) / 2)))
+    r_id = max(1, min(max(n_sig, min(r, cap)), cap, len(s)))
+    return _pieces(trajs, U[:, :r_id].T)
+
+
+def _relation_for(requested, pieces):
+    """(the relation to fit, the identification report) for ``requested`` ("auto" or a scheme)."""
+    if requested == "auto":
+        members = standard_members() + [schemes.FiniteDifferences()]
+        scheme, ident = identify(pieces, members=members)
+        return scheme, ident
+    residual = Residual(pieces)
+    try:
+        named = residual(requested)
+    except (ValueError, np.linalg.LinAlgError):
+        named = float("inf")
+    best, grid = identify(pieces, members=standard_members() + [schemes.FiniteDifferences()],
+                          refine=False)
+    grid = {best: grid["residual"]}
+    ident = {"named": requested.spec, "residual": named, "best_member": best.spec,
+             "best_residual": grid[best]}
+    if named > MISMATCH * grid[best] and named > MISMATCH_FLOOR:
+        warn(
+            f"scheme={requested.spec}: the data obey its relation with relative residual "
+            f"{named:.3g}, but {best.spec}'s with {grid[best]:.3g}: the data do not look like "
+            f"a {requested.spec} loop; consider scheme={best.spec!r} or scheme='auto'",
+            SchemeMismatchWarning)
+    return requested, ident
 
 
 def _requested_scheme(trajs, scheme):
-    """The scheme asked for: ``scheme``, or (None) the one the trajectories were recorded
+    """``"auto"`` or a Scheme: ``scheme``, or (None) the one the trajectories were recorded
     with, else ``"auto"``; a named InputError for mixed recordings or an unknown name."""
     if scheme is None:
         recorded = {getattr(s, "scheme", None) for s in trajs}
         if len(recorded) > 1:
-            raise InputError(f"the trajectories were recorded with different schemes {sorted(map(str, recorded))}"
-                             "; pass scheme= explicitly")
+            raise InputError(f"the trajectories were recorded with different schemes "
+                             f"{sorted(map(str, recorded))}; pass scheme= explicitly")
         scheme = recorded.pop() or "auto"
-    if scheme not in SCHEMES:
-        raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
-    return scheme
-
-
-def _warn_if_mismatched(scheme, named, errors):
-    """SchemeMismatchWarning when the requested relation ``named`` predicts the held-back data
-    more than 3x worse than the best one (``errors``: relation -> held-back error)."""
-    best = min(errors, key=errors.get)
-    if errors[named] > 3 * errors[best]:
-        warnings.warn(
-            f"scheme={scheme!r}: its ROM predicts the held-back data with relative error "
-            f"{errors[named]:.3g}, the {best!r} relation's with {errors[best]:.3g} (Newmark ROMs "
-            f"at the data's dt): the data do not look like a {scheme!r} loop; consider "
-            "scheme='auto'", SchemeMismatchWarning, stacklevel=3)
+    if isinstance(scheme, str) and scheme.strip().lower() == "auto":
+        return "auto"
+    return check_scheme(scheme, "scheme")

@@ -46,7 +46,7 @@ import numpy as np
 
 from ._checks import (as_real_array, check_finite, check_int, check_matrix, check_positive,
                       check_square, check_vector)
-from . import compiled
+from . import compiled, schemes
 from ..errors import FileFormatError, InputError, NonLagrangianWarning, StepFailedError
 from .io_atomic import atomic_savez, open_npz
 
@@ -112,8 +112,9 @@ def _affine_loop(G, x, forcing, n_steps: int, every: int, X, backend: str) -> No
 @dataclass(frozen=True)
 class Trajectory:
     """A ROM trajectory: times (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None;
-    ``seconds`` of integration, the ``backend`` that ran it (``"numpy"`` or ``"numba"``) and
-    ``info`` (the wave ROM's Newton counts: ``newton_iterations``, ``jacobians``)."""
+    ``seconds`` of integration, the ``backend`` that ran it (``"numpy"`` or ``"numba"``),
+    ``info`` (the wave ROM's Newton counts: ``newton_iterations``, ``jacobians``) and Ah
+    (r, K), the scheme's accelerations where it has them (Newmark / generalised-alpha)."""
 
     times: np.ndarray
     Qh: np.ndarray
@@ -122,6 +123,7 @@ class Trajectory:
     seconds: float = 0.0
     backend: str = "numpy"
     info: dict = field(default_factory=dict)
+    Ah: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -131,8 +133,10 @@ class LagrangianROM:
     Attributes:
         K: (r, r) stiffness.  M: (r, r) mass (identity when None).  C: (r, r) damping or None.
         B: (r, m) input operator or None.  E: (p, r) output operator or None.
-        scheme: ``"midpoint"`` (inputs at step midpoints) or ``"newmark"`` (inputs at steps);
-            a ROM is integrated with the same scheme as its FOM.
+        scheme: the time integrator, a :mod:`dolfinx_lopinf.core.schemes` object or its name
+            (``"midpoint"``: loads at the step midpoints; ``"newmark"``: average acceleration;
+            ``schemes.GeneralizedAlpha(rho_inf=0.8)``, ...): a ROM is integrated with the
+            same scheme as its FOM, so it carries the same numerical dissipation.
         meta: free-form, JSON-serialisable metadata (method, basis size, certificate, ...).
     """
 
@@ -142,12 +146,11 @@ class LagrangianROM:
     B: np.ndarray | None = None
     E: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
-    scheme: str = "midpoint"
+    scheme: schemes.Scheme | str = "midpoint"
     lagrangian: bool | None = None
 
     def __post_init__(self):
-        if self.scheme not in ("midpoint", "newmark"):
-            raise InputError(f"scheme must be 'midpoint' or 'newmark', got {self.scheme!r}")
+        object.__setattr__(self, "scheme", schemes.rom_scheme(schemes.from_spec(self.scheme)))
         if self.lagrangian not in (None, True, False):
             raise InputError(f"lagrangian must be None, True or False, got {self.lagrangian!r}")
         K = check_square(self.K, "K")
@@ -210,59 +213,34 @@ class LagrangianROM:
         # non-finite columns (a trajectory that blew up) give non-finite energies: a result
         return 0.5 * np.einsum("ik,ij,jk->k", Vh, M, Vh) + 0.5 * np.einsum("ik,ij,jk->k", Qh, K, Qh)
 
-    def propagator(self, dt: float) -> tuple[np.ndarray, np.ndarray | None]:
-        """(G, H): one midpoint step is [q1; p1] = G [q0; p0] + H u_mid."""
+    def step(self, dt: float):
+        """(G, H): one step of the ROM's scheme is x1 = G x0 + H f(t0 + tau dt) on its state
+        x ([q; v; a] for the Newmark / generalised-alpha family, [q; p] for the midpoint rule;
+        :mod:`dolfinx_lopinf.core.schemes`)."""
         dt = check_positive(dt, "dt")
-        M, K = self.mass, self.K
-        C = np.zeros_like(K) if self.C is None else self.C
-        A = M + 0.5 * dt * C + 0.25 * dt**2 * K
-        rhs_q = np.hstack([M + 0.5 * dt * C - 0.25 * dt**2 * K, dt * np.eye(self.r)])
-        Gq = np.linalg.solve(A, rhs_q)  # q1 = Gq [q0; p0] (+ input part)
-        Pq1 = M / dt - 0.25 * dt * K - 0.5 * C  # p1 = Pq1 q1 - Pq0 q0 (+ input part)
-        Pq0 = np.hstack([M / dt + 0.25 * dt * K - 0.5 * C, np.zeros_like(K)])
-        G = np.vstack([Gq, Pq1 @ Gq - Pq0])
-        H = None
-        if self.B is not None:
-            Hq = np.linalg.solve(A, 0.5 * dt**2 * self.B)
-            H = np.vstack([Hq, Pq1 @ Hq + 0.5 * dt * self.B])
-        return G, H
-
-    def newmark_propagator(self, dt: float):
-        """(G, H0, H1): one Newmark step is [q1; v1] = G [q0; v0] + H0 u0 + H1 u1."""
-        dt = check_positive(dt, "dt")
-        r, M, K = self.r, self.mass, self.K
-        C = np.zeros_like(K) if self.C is None else self.C
-        m = 0 if self.B is None else self.B.shape[1]
-        B = np.zeros((r, m)) if self.B is None else self.B
-        A = M + 0.5 * dt * C + 0.25 * dt**2 * K
-        # columns: q0 (r), v0 (r), u0 (m), u1 (m)
-        n_in = 2 * r + 2 * m
-        Iq, Iv = np.eye(r, n_in), np.eye(r, n_in, r)
-        U0 = np.zeros((m, n_in)); U0[:, 2 * r:2 * r + m] = np.eye(m)
-        U1 = np.zeros((m, n_in)); U1[:, 2 * r + m:] = np.eye(m)
-        a0 = np.linalg.solve(M, B @ U0 - C @ Iv - K @ Iq)
-        qs, vs = Iq + dt * Iv + 0.25 * dt**2 * a0, Iv + 0.5 * dt * a0
-        a1 = np.linalg.solve(A, B @ U1 - C @ vs - K @ qs)
-        X1 = np.vstack([qs + 0.25 * dt**2 * a1, vs + 0.5 * dt * a1])
-        return X1[:, :2 * r], X1[:, 2 * r:2 * r + m], X1[:, 2 * r + m:]
+        return self.scheme.step(self.mass, self.C, self.K, self.B, dt)
 
     def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1,
                  backend: str = "auto") -> Trajectory:
-        """Integrate with the midpoint variational integrator (or Newmark, see ``scheme``).
+        """Integrate with the ROM's scheme (:attr:`scheme`) from (q0, v0).
 
         Args:
             q0, v0: (r,) initial reduced position and velocity.
             dt: time step; n_steps: number of steps; every: keep every ``every``-th step.
-            inputs: for a forced ROM, a callable u(t) -> (m,), or an array of inputs: (m,
-                n_steps) at the step midpoints t_k + dt/2 (midpoint) or (m, n_steps + 1) at
-                t_0 .. t_n (Newmark).
+            inputs: for a forced ROM, a callable u(t) -> (m,) - evaluated where the scheme
+                evaluates its load (t_n + tau dt: t_{n+1} for Newmark, t_{n+1-alpha_f} for
+                generalised-alpha, the midpoints for the midpoint rule), and at t_0 for the
+                initial acceleration - or an array: (m, n_steps + 1) at t_0 .. t_n
+                (interpolated linearly to the scheme's times), or, for the midpoint rule,
+                (m, n_steps) at the step midpoints. None: no load (the free response).
             backend: ``"numpy"`` (the reference loop), ``"numba"`` (the compiled loop of
-                :mod:`dolfinx_lopinf.core.compiled`: the same propagator and forcing, equal to
+                :mod:`dolfinx_lopinf.core.compiled`: the same step and forcing, equal to
                 rounding) or ``"auto"`` (numba when installed and not disabled by
                 ``DOLFINX_LOPINF_JIT=0``). Compilation happens before the timer starts.
 
         Returns:
-            :class:`Trajectory` sampled at t = 0, every*dt, ... (velocities v = Mh^{-1} p).
+            :class:`Trajectory` at t = 0, every*dt, ...: positions Qh, velocities Vh and, for
+            the Newmark / generalised-alpha family, the scheme's accelerations Ah.
         """
         r = self.r
         q0, v0 = _initial_state(q0, v0, r)
@@ -272,72 +250,64 @@ class LagrangianROM:
         backend = compiled.resolve_backend(backend)
         if backend == "numba":
             compiled.kernels()  # compile / load from the cache outside the timed region
-        chunks = self._input_chunks(inputs, dt, n_steps)
+        loads, f0 = self._loads(inputs, dt, n_steps)
         t0 = time.perf_counter()
+        G, H = self.step(dt)
+        x = self.scheme.initial_state(q0, v0, f0, self.mass, self.C, self.K, self.B)
         n_out = n_steps // every + 1
-        X = np.empty((2 * r, n_out))
-        if self.scheme == "midpoint":
-            G, H = self.propagator(dt)
-            x = np.concatenate([q0, self.mass @ v0])
-        else:
-            G, H0, H1 = self.newmark_propagator(dt)
-            x = np.concatenate([q0, v0])
+        X = np.empty((len(x), n_out))
         X[:, 0] = x
         timing = {"inputs": 0.0}  # evaluating a callable input is not integration time
 
         def forcing_chunks():
-            """(k0, k1, the forcing rows f_k of steps k0 .. k1-1 as a (2r, k1-k0) array)."""
+            """(k0, k1, the forcing H F_k of steps k0 .. k1-1 as a (d, k1-k0) array)."""
             for k0 in range(0, n_steps, _CHUNK):
                 k1 = min(k0 + _CHUNK, n_steps)
                 ti = time.perf_counter()
-                U = chunks(k0, k1)
+                F = loads(k0, k1)
                 timing["inputs"] += time.perf_counter() - ti
-                yield k0, k1, (H @ U if self.scheme == "midpoint"
-                               else H0 @ U[:, :-1] + H1 @ U[:, 1:])
+                yield k0, k1, H @ F
 
-        _affine_loop(G, x, None if chunks is None else forcing_chunks(), n_steps, every, X,
+        _affine_loop(G, x, None if loads is None else forcing_chunks(), n_steps, every, X,
                      backend)
-        input_seconds = timing["inputs"]
-        Qh = X[:r]
-        Vh = X[r:]  # Newmark: velocities; midpoint: momenta p = M v (M = I when None)
-        if self.scheme == "midpoint" and self.M is not None:
-            Vh = np.linalg.solve(self.M, Vh)
-        seconds = time.perf_counter() - t0 - input_seconds
+        Qh, Vh, Ah = self.scheme.unpack(X, self.mass, self.C, self.K, self.B)
+        seconds = time.perf_counter() - t0 - timing["inputs"]
         Y = None if self.E is None else self.E @ Qh
         times = dt * every * np.arange(n_out)
-        return Trajectory(times, Qh, Vh, Y, seconds, backend)
+        return Trajectory(times, Qh, Vh, Y, seconds, backend, Ah=Ah)
 
-    def _input_chunks(self, inputs, dt, n_steps):
-        """None for an unforced model, else chunk(k0, k1) -> the inputs of steps k0 .. k1-1:
-        (m, k1-k0) at the step midpoints (midpoint) or (m, k1-k0+1) at t_k0 .. t_k1 (Newmark).
-        An array is checked once here; a callable's values are checked chunk by chunk."""
+    def _loads(self, inputs, dt, n_steps):
+        """(loads, f0): loads(k0, k1) -> (m, k1 - k0) the scheme's loads F_k = u(t_k + tau dt)
+        of steps k0 .. k1-1 (None for the free response), and u(t_0) (or None). An array is
+        checked once here; a callable's values are checked chunk by chunk."""
         if self.B is None:
             if inputs is not None:
-                raise InputError("this ROM has no input operator B; do not pass inputs")
-            return None
+                raise InputError("this ROM has no input operator B (it is unforced); do not "
+                                 "pass inputs")
+            return None, None
         m = self.B.shape[1]
         if inputs is None:
-            raise InputError(f"this ROM is forced (B has {m} columns): pass inputs")
-        midpoint = self.scheme == "midpoint"
-        n_u = n_steps if midpoint else n_steps + 1
-        where = "step midpoints" if midpoint else "steps t_0 .. t_n"
+            return None, None
+        tau = self.scheme.tau
+        midpoint = isinstance(self.scheme, schemes.Midpoint)
         if not callable(inputs):
             U = as_real_array(inputs, "inputs")
             U = U.reshape(1, -1) if U.ndim == 1 else U
-            if U.shape != (m, n_u):
-                raise InputError(f"inputs must have shape ({m}, {n_u}) (m inputs at the {where}), "
-                                 f"got {U.shape}")
+            shapes = [(m, n_steps + 1)] + ([(m, n_steps)] if midpoint else [])
+            if U.shape not in shapes:
+                where = (f"({m}, {n_steps + 1}) at t_0 .. t_n"
+                         + (f" or ({m}, {n_steps}) at the step midpoints" if midpoint else ""))
+                raise InputError(f"inputs must have shape {where} (m = {m} inputs, one per "
+                                 f"column of B), got {U.shape}")
             check_finite(U, "inputs", "the forcing must be finite")
-            return lambda k0, k1: U[:, k0:k1 + (not midpoint)]
+            if U.shape[1] == n_steps:  # midpoint rule, at the midpoints already
+                return (lambda k0, k1: U[:, k0:k1]), None
+            grid = dt * np.arange(n_steps + 1)
+            F = schemes.sample_inputs(U, grid, grid[:-1] + tau * dt)
+            return (lambda k0, k1: F[:, k0:k1]), U[:, 0]
 
-        last = {}
-
-        def chunk(k0, k1):
-            steps = np.arange(k0, k1) if midpoint else np.arange(k0, k1 + 1)
-            times = dt * (steps + 0.5) if midpoint else dt * steps
-            cols = [np.atleast_1d(np.asarray(inputs(t))) for t in times[1 if k0 in last else 0:]]
-            if k0 in last:  # Newmark: u(t_k0) was the last column of the previous chunk
-                cols.insert(0, last.pop(k0))
+        def evaluate(times):
+            cols = [np.atleast_1d(np.asarray(inputs(t))) for t in times]
             try:
                 U = np.column_stack(cols)
             except ValueError:
@@ -353,11 +323,10 @@ class LagrangianROM:
                 i, k = np.argwhere(~finite)[0]
                 raise InputError(f"inputs(t) returned a non-finite value {U[i, k]} (input {i}) "
                                  f"at t = {times[k]:.6g}; the forcing must be finite")
-            if not midpoint:
-                last[k1] = U[:, -1]
             return U
 
-        return chunk
+        f0 = None if midpoint else evaluate(np.array([0.0]))[:, 0]
+        return (lambda k0, k1: evaluate(dt * (np.arange(k0, k1) + tau))), f0
 
 
 def _json_default(value):
@@ -388,7 +357,7 @@ def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
     except (TypeError, ValueError) as exc:
         raise InputError(f"rom.meta must be JSON-serialisable (numbers, strings, lists, dicts, "
                          f"numpy scalars/arrays): {exc}") from None
-    arrays = {"K": rom.K, "scheme": np.array(rom.scheme), "meta": np.array(meta),
+    arrays = {"K": rom.K, "scheme": np.array(rom.scheme.spec), "meta": np.array(meta),
               "lagrangian": np.array(json.dumps(rom.lagrangian))}
     for name in ("M", "C", "B", "E"):
         if getattr(rom, name) is not None:

@@ -1,11 +1,11 @@
 """Snapshot data: the only thing the non-intrusive inference ever sees.
 
-``Snapshots`` holds states Q (n, K) at uniform times (K,), optional velocities (n, K),
-inputs U (m, K), outputs Y (p, K) and energies (K,), with named row blocks of Q (for
-the beam: ``{"w": ..., "theta": ...}``), and optionally the name of the integrator that
-produced them (``scheme``: ``"newmark"``, ``"midpoint"`` or ``"continuous"``; None when
-unknown). It is a plain numpy object: it can be saved to one ``.npz`` and loaded where there
-is no DOLFINx.
+``Snapshots`` holds states Q (n, K) at uniform times (K,), optional velocities and
+accelerations (n, K), inputs U (m, K_u) with the times at which they act, outputs Y (p, K)
+and energies (K,), with named row blocks of Q (for the beam: ``{"w": ..., "theta": ...}``),
+and optionally the integrator that produced them (``scheme``: a
+:mod:`dolfinx_lopinf.core.schemes` object; None when unknown). It is a plain numpy object:
+it can be saved to one ``.npz`` and loaded where there is no DOLFINx.
 """
 
 from __future__ import annotations
@@ -18,26 +18,22 @@ import numpy as np
 from ._checks import as_real_array, check_blocks, check_finite, check_matrix, check_uniform_times
 from ..errors import FileFormatError, InputError
 from .io_atomic import atomic_savez_compressed, open_npz
-
-#: The integrators a recording can declare (``Snapshots.scheme``); None means "unknown"
-#: (``lo.fit`` then decides from the data, ``scheme="auto"``).
-RECORDED_SCHEMES = ("newmark", "midpoint", "continuous")
+from . import schemes as _schemes
 
 
-def check_scheme(scheme, name: str = "scheme") -> str | None:
-    """``scheme`` as a plain str from :data:`RECORDED_SCHEMES`, or None; an
+def check_scheme(scheme, name: str = "scheme"):
+    """``scheme`` as a :class:`~dolfinx_lopinf.core.schemes.Scheme` (from an object, its
+    spec text or a name such as ``"newmark"``), or None; an
     :class:`~dolfinx_lopinf.errors.InputError` naming the bad value and the choices otherwise."""
     if scheme is None:
         return None
-    if isinstance(scheme, str) and str(scheme) in RECORDED_SCHEMES:
-        return str(scheme)
-    hint = ""
-    if isinstance(scheme, str) and scheme.strip().lower() in RECORDED_SCHEMES:
-        hint = f" (did you mean {scheme.strip().lower()!r}?)"
-    elif isinstance(scheme, str) and scheme.strip().lower() == "auto":
-        hint = " (for an integrator you do not know, pass None: lo.fit then decides from the data)"
-    raise InputError(f"{name} must be None or one of {RECORDED_SCHEMES} (the integrator that "
-                     f"produced the snapshots), got {scheme!r}{hint}")
+    if isinstance(scheme, str) and scheme.strip().lower() == "auto":
+        raise InputError(f"{name}: 'auto' is not an integrator; for one you do not know pass "
+                         "None (lo.fit then identifies it from the data)")
+    try:
+        return _schemes.from_spec(scheme)
+    except InputError as exc:
+        raise InputError(f"{name}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -49,15 +45,18 @@ class Snapshots:
         Q: (n, K) states; column k is the state at ``times[k]``.
         blocks: name -> row indices of Q for physically different parts of the state.
         V: (n, K) velocities, or None.
-        U: (m, K) inputs, or None.
+        U: (m, K_u) inputs, or None.
         Y: (p, K) outputs, or None.
         energy: (K,) FOM energy, or None.
         output_times: (K_y,) times of ``Y`` when outputs are recorded on their own grid
             (e.g. a long run that keeps only outputs); None means ``times``.
-        scheme: the integrator that produced the states, one of :data:`RECORDED_SCHEMES`
-            (``"newmark"``: average-acceleration Newmark; ``"midpoint"``: the midpoint
-            variational integrator; ``"continuous"``: any other, e.g. an adaptive or
-            generalised-alpha solver), or None when unknown.
+        scheme: the integrator that produced the states (a
+            :mod:`dolfinx_lopinf.core.schemes` object, or a name / spec text turned into
+            one: ``"newmark"``, ``"midpoint"``, ``GeneralizedAlpha(rho_inf=0.8)``, ...), or
+            None when unknown.
+        A: (n, K) accelerations, or None (with V: the scheme's (u, v, a) relation is used).
+        input_times: (K_u,) increasing times at which the columns of U act (a
+            generalised-alpha loop applies its load at t_{n+1-alpha_f}); None: ``times``.
     """
 
     times: np.ndarray
@@ -68,7 +67,9 @@ class Snapshots:
     Y: np.ndarray | None = None
     energy: np.ndarray | None = None
     output_times: np.ndarray | None = None
-    scheme: str | None = None
+    scheme: object = None
+    A: np.ndarray | None = None
+    input_times: np.ndarray | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "scheme", check_scheme(self.scheme))
@@ -79,15 +80,32 @@ class Snapshots:
         K = len(times)
         object.__setattr__(self, "Q", check_matrix(self.Q, "Q", cols=K))
         n = self.Q.shape[0]
-        for name in ("V", "U", "energy"):
+        K_u = K
+        if self.input_times is not None:
+            if self.U is None:
+                raise InputError("input_times given without inputs U; pass U too (or drop "
+                                 "input_times)")
+            ti = as_real_array(self.input_times, "input_times")
+            if ti.ndim != 1 or len(ti) < 1:
+                raise InputError(f"input_times must be a non-empty 1-D array, got shape {ti.shape}")
+            check_finite(ti, "input_times")
+            if len(ti) > 1 and np.min(np.diff(ti)) <= 0:
+                k = int(np.argmin(np.diff(ti)))
+                raise InputError(f"input_times must be strictly increasing; input_times[{k}] = "
+                                 f"{float(ti[k])!r} is followed by {float(ti[k + 1])!r}")
+            object.__setattr__(self, "input_times", ti)
+            K_u = len(ti)
+        for name in ("V", "A", "U", "energy"):
             value = getattr(self, name)
             if value is None:
                 continue
             value = as_real_array(value, name)
-            ok = {"V": value.shape == self.Q.shape, "U": value.ndim in (1, 2),
-                  "energy": value.ndim == 1}[name] and value.shape[-1] == K
+            ok = {"V": value.shape == self.Q.shape, "A": value.shape == self.Q.shape,
+                  "U": value.ndim in (1, 2), "energy": value.ndim == 1}[name] \
+                and value.shape[-1] == (K_u if name == "U" else K)
             if not ok:
-                want = {"V": f"{self.Q.shape} like Q", "U": f"(m, {K})", "energy": f"({K},)"}[name]
+                want = {"V": f"{self.Q.shape} like Q", "A": f"{self.Q.shape} like Q",
+                        "U": f"(m, {K_u})", "energy": f"({K},)"}[name]
                 raise InputError(f"{name} has shape {value.shape}; it must be {want} (one "
                                  f"column per sample time)")
             check_finite(value, name)
@@ -145,8 +163,16 @@ class Snapshots:
         elif Y is not None:
             ykeep = (ty >= t_start - tol) & (ty <= t_stop + tol)
             Y, ty = Y[:, ykeep], ty[ykeep]
+        U, ti = cut(self.U), None
+        if self.input_times is not None:  # the inputs the window's steps need: one sample
+            t0, t1 = self.times[keep][0], self.times[keep][-1]  # either side of it
+            i0 = max(int(np.searchsorted(self.input_times, t0 - tol, side="right")) - 1, 0)
+            i1 = min(int(np.searchsorted(self.input_times, t1 + tol, side="left")) + 1,
+                     len(self.input_times))
+            U, ti = self.U[:, i0:i1], self.input_times[i0:i1]
         return replace(self, times=self.times[keep], Q=self.Q[:, keep], V=cut(self.V),
-                       U=cut(self.U), energy=cut(self.energy), Y=Y, output_times=ty)
+                       A=cut(self.A), U=U, input_times=ti, energy=cut(self.energy), Y=Y,
+                       output_times=ty)
 
     def save(self, path: str | Path) -> Path:
         """Write all arrays to one compressed ``.npz``, atomically (a temporary file in the
@@ -157,7 +183,7 @@ class Snapshots:
                   if isinstance(v, np.ndarray) and not k.startswith("_")}
         arrays.update({f"block__{k}": v for k, v in self.blocks.items()})
         if self.scheme is not None:
-            arrays["scheme"] = np.array(self.scheme)  # 0-d unicode: loads without pickle
+            arrays["scheme"] = np.array(self.scheme.spec)  # 0-d unicode: loads without pickle
         return atomic_savez_compressed(path, **arrays)
 
     @classmethod
@@ -166,7 +192,8 @@ class Snapshots:
         :class:`~dolfinx_lopinf.errors.FileFormatError` naming the file when it is not such
         a file (another format, truncated, missing or unknown entries), and
         ``FileNotFoundError`` when it does not exist."""
-        fields = {"times", "Q", "V", "U", "Y", "energy", "output_times", "scheme"}
+        fields = {"times", "Q", "V", "A", "U", "Y", "energy", "output_times", "scheme",
+                  "input_times"}
         with open_npz(path, "snapshots (Snapshots.save)") as (data, read):
             names = [k for k in data.files if not k.startswith("block__")]
             missing = [k for k in ("times", "Q") if k not in names]

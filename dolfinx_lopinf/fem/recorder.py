@@ -6,15 +6,30 @@
         recorder.record(t, u, inputs=[load(t)])     # once per step (or every k-th step)
     snaps = recorder.snapshots()                    # Snapshots on rank 0, None elsewhere
 
-If you know your loop's integrator, say so - ``SnapshotRecorder(u, scheme="newmark")`` - and
-the snapshots carry it (``snaps.scheme``) for the fit; leave it None when you do not know.
+Rows. ``snaps.Q[i]`` is dof ``i`` of your space (``u.x.array[i]`` in serial; the global dof
+number, i.e. the row of your own assembled PETSc matrices, in parallel), so anything you build
+from your own M or K applies to the snapshots as they are. ``order="coordinates"`` sorts the
+rows by dof coordinates instead, which makes the arrays identical for any number of ranks;
+``recorder.state_map`` is the map either way (state[i] = dofs[state_map.order[i]]).
+
+Which integrator. If you know it, say so - ``SnapshotRecorder(u, scheme="newmark")`` or
+``scheme=lo.schemes.GeneralizedAlpha(rho_inf=0.8)`` - and the snapshots carry it for the fit;
+leave it None and ``lo.fit`` identifies it from the data. If your loop keeps its velocity and
+acceleration Functions, hand them over (``velocity=v, acceleration=a``): they are recorded at
+every call and the fit uses the scheme's (u, v, a) relation directly.
+
+Loads. ``record(t, u, inputs=[p])`` records the load values; a generalised-alpha loop applies
+its load at t_{n+1-alpha_f}, not at t: say so with ``input_time=t - alpha_f * dt`` (the time
+at which the recorded values act), and a load with jumps costs nothing. Without it the
+inputs are taken to act at t and interpolated linearly to where the scheme needs them.
 
 In the package's own time loop the recorder is a sink:
 ``fom.run(integrator, n, sinks=[rec.sink(velocity=True)])`` (``scheme`` defaults to the
 integrator's then).
 
 Each rank stores only its owned dofs; :meth:`SnapshotRecorder.snapshots` gathers them once
-into global dof order, so the arrays are identical for any number of ranks.
+into state order on rank 0. Every check is collective: a bad argument on one rank raises the
+same :class:`~dolfinx_lopinf.errors.InputError` on every rank.
 """
 
 from __future__ import annotations
@@ -27,36 +42,70 @@ from .fom import StateMap, gather_states
 from .lagrangian import _on_space
 from ..core.snapshots import Snapshots, check_scheme
 
+ORDERS = ("dofs", "coordinates")
+
+
+def _verdict(comm, problem):
+    """Raise the first rank's problem on every rank (collective)."""
+    for m in (comm.allgather(problem) if comm.size > 1 else [problem]):
+        if m is not None:
+            raise InputError(m)
+
 
 class SnapshotRecorder:
-    """Collects states (and optional velocities, inputs, outputs) of a dolfinx Function.
+    """Collects states (and optional velocities, accelerations, inputs, outputs) of a dolfinx
+    Function.
 
     Args:
         u: the Function (or its FunctionSpace) whose values are recorded.
-        state_map: dof -> state coordinates (default: ordered by dof coordinates, identical
-            for any number of ranks; Lagrange-type spaces).
+        order: ``"dofs"`` (default: row i is global dof i) or ``"coordinates"`` (rows sorted
+            by dof coordinates, identical for any number of ranks; Lagrange-type spaces).
+        state_map: an explicit dof -> state map (overrides ``order``; e.g. a Hermite beam's).
         output_matrix: optional (p, n_local) local output matrix, e.g. from
             :func:`dolfinx_lopinf.point_output_matrix`; y = sum over ranks of E u_local.
         blocks: optional name -> state rows (for block-diagonal POD).
-        scheme: the integrator of your loop, if you know it: ``"newmark"`` (average
-            acceleration, gamma = 1/2, beta = 1/4), ``"midpoint"`` (midpoint variational
-            integrator) or ``"continuous"`` (anything else); None (default) = unknown. Stored
-            as ``Snapshots.scheme``.
+        scheme: the integrator of your loop, if you know it: a name (``"newmark"``,
+            ``"midpoint"``, ``"central_difference"``, ``"continuous"``) or a
+            :mod:`dolfinx_lopinf.core.schemes` object; None (default) = unknown.
+        velocity, acceleration: your loop's velocity and acceleration Functions (same space),
+            recorded with u at every :meth:`record` call.
 
     Example:
         >>> rec = SnapshotRecorder(u)                                   # doctest: +SKIP
         >>> rec.record(0.0, u, inputs=[0.0])                            # doctest: +SKIP
     """
 
-    def __init__(self, u, *, state_map: StateMap | None = None, output_matrix=None,
-                 blocks: dict | None = None, scheme: str | None = None):
-        self.scheme = check_scheme(scheme, "SnapshotRecorder(scheme=...)")
+    def __init__(self, u, *, order: str = "dofs", state_map: StateMap | None = None,
+                 output_matrix=None, blocks: dict | None = None, scheme=None, velocity=None,
+                 acceleration=None):
         V = u.function_space if isinstance(u, dolfinx.fem.Function) else u
         if not isinstance(V, dolfinx.fem.FunctionSpace):
             raise InputError("SnapshotRecorder needs a dolfinx Function or FunctionSpace, got "
                              f"{type(u).__name__}")
+        comm = V.mesh.comm
+        problem, spec = None, None
+        try:
+            self.scheme = check_scheme(scheme, "SnapshotRecorder(scheme=...)")
+            spec = None if self.scheme is None else self.scheme.spec
+        except InputError as exc:
+            problem = str(exc)
+        if problem is None and order not in ORDERS and state_map is None:
+            problem = f"order must be one of {ORDERS}, got {order!r}"
+        if problem is None and state_map is not None and not isinstance(state_map, StateMap):
+            problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
+        if problem is None and comm.size > 1:
+            specs = comm.allgather((spec, order if state_map is None else "explicit"))
+            if any(x != specs[0] for x in specs):
+                problem = (f"SnapshotRecorder arguments differ between ranks (scheme, order): "
+                           f"{specs}; pass the same on every rank")
+        _verdict(comm, problem)
         self.V = V
-        self.state_map = StateMap.from_coordinates(V) if state_map is None else state_map
+        if state_map is None:
+            try:
+                state_map = StateMap.identity(V) if order == "dofs" else StateMap.from_coordinates(V)
+            except ValueError as exc:
+                raise InputError(f"order='coordinates': {exc}") from None
+        self.state_map = state_map
         if blocks:
             self.state_map = StateMap(self.state_map.order, self.state_map.scale, blocks)
         self._n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
@@ -70,11 +119,21 @@ class SnapshotRecorder:
                            f"dofs, from point_output_matrix), got shape {output_matrix.shape}")
             elif not np.all(np.isfinite(output_matrix)):
                 problem = "output_matrix contains NaN or inf"
-        for m in (V.mesh.comm.allgather(problem) if V.mesh.comm.size > 1 else [problem]):
-            if m is not None:
-                raise InputError(m)
+        self._fields = {}
+        for name, f in (("velocity", velocity), ("acceleration", acceleration)):
+            if f is None:
+                continue
+            if not isinstance(f, dolfinx.fem.Function):
+                problem = problem or (f"{name} must be your loop's dolfinx Function (recorded at "
+                                      f"every record() call), got {type(f).__name__}")
+            elif not _on_space(f, V):
+                problem = problem or (f"{name} is a Function on another space than u's; the "
+                                      "(u, v, a) relation needs them on the same space")
+            self._fields[name] = f
+        _verdict(comm, problem)
         self.output_matrix = output_matrix
         self._times, self._states, self._velocities, self._inputs, self._outputs = [], [], [], [], []
+        self._accelerations, self._input_times = [], []
 
     def __len__(self) -> int:
         return len(self._times)
@@ -103,18 +162,21 @@ class SnapshotRecorder:
             return None, f"the {name} recorded at this time contains NaN or inf"
         return arr, None
 
-    def record(self, t: float, u, *, velocity=None, inputs=None) -> None:
+    def record(self, t: float, u, *, velocity=None, inputs=None, input_time=None) -> None:
         """Store the state at time t (times must be increasing and uniformly spaced).
 
         All or nothing: every argument is checked (collectively: every rank raises the same
-        :class:`~dolfinx_lopinf.errors.InputError`) before anything is stored, so a refused
-        call leaves the recorder as it was.
+        :class:`~dolfinx_lopinf.errors.InputError`, also when the ranks pass different times
+        or inputs) before anything is stored, so a refused call leaves the recorder as it was.
 
         Args:
             t: time of this state.
             u: Function on the recorder's space or local dof array (owned, or owned + ghosts).
-            velocity: optional Function/array of the velocity at t.
-            inputs: optional sequence of m input values at t (same m every call).
+            velocity: optional Function/array of the velocity at t (not with the recorder's
+                own ``velocity=``).
+            inputs: optional sequence of m input values (same m every call).
+            input_time: the time at which ``inputs`` act in your loop (default t), e.g.
+                ``t - alpha_f * dt`` for a generalised-alpha loop; increasing call to call.
         """
         comm = self.V.mesh.comm
         problem = None
@@ -126,48 +188,84 @@ class SnapshotRecorder:
             problem = f"t must be a number, got {t!r}"
         arr, p = self._local(u, "u")
         problem = problem or p
-        vel = None
-        if velocity is not None:
-            vel, p = self._local(velocity, "velocity")
+        vel = acc = None
+        if velocity is not None and "velocity" in self._fields:
+            problem = problem or ("velocity was given to the recorder (SnapshotRecorder(u, "
+                                  "velocity=v)) and to record(); give it once")
+        elif velocity is not None or "velocity" in self._fields:
+            vel, p = self._local(self._fields.get("velocity", velocity), "velocity")
             problem = problem or p
-        if problem is None and self._times:
-            if t <= self._times[-1]:
-                problem = f"times must increase: got t = {t} after {self._times[-1]}"
-            elif len(self._times) >= 2:
-                dt = self._times[1] - self._times[0]
-                if abs((t - self._times[-1]) - dt) > 1e-6 * dt:
-                    problem = (f"record at a uniform spacing: dt was {dt}, now "
-                               f"{t - self._times[-1]} at t = {t}")
+        if "acceleration" in self._fields:
+            acc, p = self._local(self._fields["acceleration"], "acceleration")
+            problem = problem or p
+        problem = problem or self._time_problem(t)
         if inputs is not None and problem is None:
-            try:
-                inputs = np.atleast_1d(np.asarray(inputs, dtype=float)).ravel()
-                if not np.all(np.isfinite(inputs)):
-                    problem = f"inputs at t = {t} contain NaN or inf: {inputs}"
-                elif self._inputs and len(inputs) != len(self._inputs[0]):
-                    problem = f"inputs had {len(self._inputs[0])} entries, now {len(inputs)}"
-            except (TypeError, ValueError):
-                problem = f"inputs must be a sequence of numbers, got {inputs!r}"
+            inputs, tu, p = self._input_problem(t, inputs, input_time)
+            problem = problem or p
+        elif input_time is not None and problem is None:
+            problem = "input_time given without inputs"
         if problem is None and self._times:
             if (inputs is None) != (not self._inputs):
                 problem = "pass inputs at every record() call or at none"
-            elif (velocity is None) != (not self._velocities):
+            elif (vel is None) != (not self._velocities):
                 problem = "pass velocity at every record() call or at none"
         if problem is None and self.output_matrix is not None and arr.shape[0] != self._n_local:
             problem = "outputs need the ghosted array: pass the Function itself"
-        messages = comm.allgather(problem) if comm.size > 1 else [problem]
-        for m in messages:
-            if m is not None:
-                raise InputError(m)
+        if problem is None and comm.size > 1:  # the ranks must record the same time and inputs
+            seen = comm.allgather((t, None if inputs is None else inputs.tolist()))
+            if any(x != seen[0] for x in seen):
+                problem = (f"record() called with different times or inputs on different ranks "
+                           f"({seen}); t and inputs are global: pass the same on every rank")
+        _verdict(comm, problem)
         y = comm.allreduce(self.output_matrix @ arr) if self.output_matrix is not None else None
         # nothing can fail past this point: store everything
         self._times.append(t)
         self._states.append(arr[: self._n_owned].copy())
         if vel is not None:
             self._velocities.append(vel[: self._n_owned].copy())
+        if acc is not None:
+            self._accelerations.append(acc[: self._n_owned].copy())
         if inputs is not None:
             self._inputs.append(inputs)
+            self._input_times.append(tu)
         if y is not None:
             self._outputs.append(y)
+
+    def _time_problem(self, t):
+        if not self._times:
+            return None
+        if t <= self._times[-1]:
+            return f"times must increase: got t = {t} after {self._times[-1]}"
+        if len(self._times) >= 2:
+            dt = self._times[1] - self._times[0]
+            tol = 1e-6 * dt + 4 * np.finfo(float).eps * abs(t)
+            if abs((t - self._times[-1]) - dt) > tol:
+                return (f"record at a uniform spacing: dt was {dt!r}, now {t - self._times[-1]!r} "
+                        f"at t = {t!r} (a skipped or repeated step?)")
+        return None
+
+    def _input_problem(self, t, inputs, input_time):
+        """(inputs as a float array, the time they act, problem or None)."""
+        try:
+            inputs = np.atleast_1d(np.asarray(inputs, dtype=float)).ravel()
+        except (TypeError, ValueError):
+            return None, None, f"inputs must be a sequence of real numbers, got {inputs!r}"
+        if not np.all(np.isfinite(inputs)):
+            return None, None, f"inputs at t = {t} contain NaN or inf: {inputs}"
+        if self._inputs and len(inputs) != len(self._inputs[0]):
+            return None, None, f"inputs had {len(self._inputs[0])} entries, now {len(inputs)}"
+        tu = t
+        if input_time is not None:
+            try:
+                tu = float(input_time)
+            except (TypeError, ValueError):
+                return None, None, f"input_time must be a number, got {input_time!r}"
+            if not np.isfinite(tu):
+                return None, None, f"input_time must be finite, got {input_time!r}"
+        if self._input_times and tu <= self._input_times[-1]:
+            return None, None, (f"input times must increase: input_time = {tu!r} after "
+                                f"{self._input_times[-1]!r}")
+        return inputs, tu, None
 
     def sink(self, *, every: int = 1, until_step: int | None = None, velocity: bool = False,
              inputs=None):
@@ -188,12 +286,15 @@ class SnapshotRecorder:
         """Gather everything to rank 0 as :class:`Snapshots` (None on the other ranks)."""
         if len(self._times) < 2:
             raise InputError("record at least two time steps before asking for snapshots")
-        Q = gather_states(self.V, np.column_stack(self._states), self.state_map)
-        Vel = gather_states(self.V, np.column_stack(self._velocities), self.state_map) \
-            if self._velocities else None
+        gather = (lambda rows: gather_states(self.V, np.column_stack(rows), self.state_map)
+                  if rows else None)
+        Q, Vel, Acc = gather(self._states), gather(self._velocities), gather(self._accelerations)
         if self.V.mesh.comm.rank != 0:
             return None
         U = np.column_stack(self._inputs) if self._inputs else None
         Y = np.column_stack(self._outputs) if self._outputs else None
+        ti = np.array(self._input_times) if self._inputs else None
+        if ti is not None and np.array_equal(ti, np.array(self._times)):
+            ti = None  # the inputs act at the state times
         return Snapshots(times=np.array(self._times), Q=Q, blocks=self.state_map.blocks, V=Vel,
-                         U=U, Y=Y, scheme=self.scheme)
+                         A=Acc, U=U, Y=Y, scheme=self.scheme, input_times=ti)

@@ -12,7 +12,8 @@ scale[i] * dofs[order[i]] in global dof numbering, as :class:`~dolfinx_lopinf.fe
 SnapshotRecorder` and :func:`~dolfinx_lopinf.fem.fom.gather_states` gather it. The functions here
 apply the exact inverse (dofs[order] = state / scale), then give each rank its owned dofs and
 update the ghosts, so SnapshotRecorder -> states -> :func:`write_vtx` round-trips for any number
-of ranks (the default state map is the recorder's default, ``StateMap.from_coordinates``).
+of ranks (the default state map is the recorder's default, ``StateMap.identity``: row i is
+global dof i; pass ``state_map=rec.state_map`` for another).
 
 Partial states (``rows=``): ``states`` holds only the listed state rows (what
 ``Basis.reconstruct(Qh, rows=rows)`` returns); the other state rows are written as
@@ -52,12 +53,8 @@ def _space(V):
 
 
 def _default_map(V, state_map):
-    if state_map is not None:
-        return state_map
-    try:
-        return StateMap.from_coordinates(V)
-    except ValueError as exc:  # several dofs at one point (DG, Hermite, ...): collective
-        raise InputError(f"{exc} - the one the states were recorded with") from None
+    """The recorder's default: state row i is global dof i."""
+    return StateMap.identity(V) if state_map is None else state_map
 
 
 def _verdict(comm, problem):

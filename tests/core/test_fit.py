@@ -8,7 +8,7 @@ import pytest
 import scipy.linalg
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf.core.fit import SchemeMismatchWarning
+from dolfinx_lopinf.errors import SchemeMismatchWarning
 
 
 def _system(seed=0, r=4):
@@ -49,7 +49,9 @@ def test_auto_finds_newmark_and_recovers_the_discrete_operators():
     snaps = _newmark(K, C, B, dt, 1500, np.array([1.0, 0, 0, 0]), _load)
     model = lo.fit(snaps, 4, mass="identity")  # the data's mass is I: the operators themselves
     assert model.scheme == "newmark", model.report
-    assert model.report["scheme_errors"]["continuous"] > 10 * model.report["scheme_errors"]["newmark"]
+    rho = model.report["identification"]["residuals"]
+    assert rho["continuous()"] > 1e6 * rho["newmark(beta=0.25, gamma=0.5)"]  # exact vs biased
+    assert model.report["damping"] is True  # the data are damped: the held-back end says so
     # the basis is a rotation of the coordinates: compare the operators in them
     assert np.allclose(_in_state(model, model.rom.K), K, rtol=0, atol=1e-6 * np.abs(K).max())
     assert np.allclose(_in_state(model, model.rom.C), C, rtol=0, atol=1e-6 * np.abs(K).max())
@@ -61,19 +63,22 @@ def test_auto_finds_newmark_and_recovers_the_discrete_operators():
 
 def test_continuous_data_continuous_relation_and_auto():
     """Exact samples of the continuous solution: the 8th-order differences give the continuous
-    K (eigenvalues w^2); "auto" judges by the prediction of the Newmark ROM at the data's dt,
-    where the three-point relation fitted to the samples is at least as good (it absorbs the
-    scheme's phase error), so whichever it picks predicts the held-back data best."""
+    K (eigenvalues w^2); "auto" judges by the prediction of each candidate's scheme at the
+    data's dt, where the three-point relation fitted to the samples is at least as good (it
+    absorbs the scheme's phase error), so whichever it picks predicts the held-back data best.
+    Both relations hold to ~1e-11 here, so naming "continuous" is not contradicted."""
     t = 0.01 * np.arange(3000)
     w = np.array([1.0, 2.3, 4.1])
     Q = np.cos(w[:, None] * t) * np.array([1.0, 0.5, 0.25])[:, None]
-    with pytest.warns(SchemeMismatchWarning):  # the Newmark relation predicts better at dt
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SchemeMismatchWarning)
         cont = lo.fit(lo.Snapshots(t, Q), 3, damping=False, scheme="continuous")
-    # learned mass: the frequencies are the generalised eigenvalues of (Kh, Mh)
+    # the frequencies are the generalised eigenvalues of (Kh, Mh)
     assert np.allclose(scipy.linalg.eigvalsh(cont.rom.K, cont.rom.mass), w**2, rtol=1e-6)
     auto = lo.fit(lo.Snapshots(t, Q), 3, damping=False)
-    errors = auto.report["scheme_errors"]
-    assert errors[auto.scheme] == min(errors.values())
+    errors = {k: v for k, v in auto.report["candidate_errors"].items()}
+    chosen = f"{auto.report['mass']}/undamped/{auto.scheme.spec}"
+    assert errors[chosen] <= 1.5 * min(errors.values())
 
 
 def test_several_trajectories_are_stacked_per_trajectory():
@@ -96,7 +101,7 @@ def test_a_contradicted_scheme_claim_warns():
     """Newmark data at dt omega = 0.4, claimed to be continuous: the claim is named wrong."""
     K, C, B = _system()
     snaps = _newmark(K, C, B, 0.02, 1500, np.array([1.0, 0, 0, 0]), _load)
-    with pytest.warns(SchemeMismatchWarning, match="'newmark' relation"):
+    with pytest.warns(SchemeMismatchWarning, match=r"scheme=continuous\(\).*newmark\(beta=0.25"):
         lo.fit(snaps, 4, scheme="continuous")
 
 
@@ -124,7 +129,7 @@ def test_bad_trajectory_lists_are_named():
         lo.fit([a, lo.Snapshots(a.times, a.Q[:5], U=a.U)], 3)
     with pytest.raises(lo.errors.InputError, match="not a Snapshots"):
         lo.fit([a.Q], 4)
-    with pytest.raises(lo.errors.InputError, match="scheme must be"):
+    with pytest.raises(lo.errors.InputError, match="unknown scheme 'generalised-alpha'.*GeneralizedAlpha"):
         lo.fit(a, 4, scheme="generalised-alpha")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -44,7 +44,7 @@ try:
 except ImportError as exc:
     dolfinx_error = str(exc)
 loaded = sorted(m for m in json.loads(sys.argv[1]) if sys.modules.get(m) is not None)
-print(json.dumps({"scheme": model.scheme, "mass": model.report["mass"], "error": err,
+print(json.dumps({"scheme": model.scheme.spec, "mass": model.report["mass"], "error": err,
                   "backend": pred.backend, "same": bool(np.array_equal(back.rom.K, model.rom.K)),
                   "dolfinx_error": dolfinx_error, "loaded": loaded}))
 """
@@ -56,7 +56,7 @@ def test_numpy_core_runs_without_dolfinx_or_any_extra():
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     assert out["loaded"] == [], out                      # nothing blocked slipped in
-    assert out["scheme"] == "newmark" and out["mass"] == "identity", out  # auto without cvxpy
+    assert out["scheme"] == "newmark(beta=0.25, gamma=0.5)" and out["mass"] == "identity", out  # auto without cvxpy
     assert out["backend"] == "numpy", out                # the fallback loop, no numba
     assert out["error"] < 1e-6, out                      # exact data, exact relation
     assert out["same"], out

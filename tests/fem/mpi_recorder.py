@@ -24,15 +24,24 @@ q, q_old = dolfinx.fem.Function(V), dolfinx.fem.Function(V)
 q.interpolate(lambda x: np.exp(-40 * ((x[0] - 0.4) ** 2 + (x[1] - 0.6) ** 2)))
 q_old.x.array[:] = q.x.array
 E = lo.point_output_matrix(V, np.array([[0.5, 0.5, 0.0]]))
-rec = lo.SnapshotRecorder(q, output_matrix=E)
+rec = lo.SnapshotRecorder(q, output_matrix=E, order="coordinates")  # identical on any ranks
+by_dofs = lo.SnapshotRecorder(q)  # rows = global dof numbers (differ between 1 and 2 ranks)
 dt, kq = 0.01, q.x.petsc_vec.duplicate()
 for n in range(40):
     rec.record(n * dt, q, inputs=[np.sin(n * dt)])
+    by_dofs.record(n * dt, q)
     K.mult(q.x.petsc_vec, kq)
     new = 2 * q.x.petsc_vec.array - q_old.x.petsc_vec.array - dt**2 * kq.array / ml.array
     q_old.x.petsc_vec.array[:] = q.x.petsc_vec.array
     q.x.petsc_vec.array[:] = new
     q.x.scatter_forward(); q_old.x.scatter_forward()
-snaps = rec.snapshots()
+snaps, raw = rec.snapshots(), by_dofs.snapshots()
+# the coordinates of every global dof, to compare the dof-ordered rows across layouts
+imap = V.dofmap.index_map
+glob = imap.local_to_global(np.arange(imap.size_local, dtype=np.int32))
+pieces = MPI.COMM_WORLD.gather((glob, V.tabulate_dof_coordinates()[:imap.size_local]), root=0)
 if MPI.COMM_WORLD.rank == 0:
-    np.savez(out, Q=snaps.Q, U=snaps.U, Y=snaps.Y, t=snaps.times)
+    X = np.empty((imap.size_global, 3))
+    for g, x in pieces:
+        X[g] = x
+    np.savez(out, Q=snaps.Q, U=snaps.U, Y=snaps.Y, t=snaps.times, Q_dofs=raw.Q, X_dofs=X)

@@ -18,7 +18,7 @@ comm = MPI.COMM_WORLD
 msh = dolfinx.mesh.create_unit_cube(comm, 2, 2, 2)
 V = dolfinx.fem.functionspace(msh, ("Lagrange", 2, (3,)))
 u = dolfinx.fem.Function(V)
-rec = lo.SnapshotRecorder(u)
+rec = lo.SnapshotRecorder(u, order="coordinates")  # the same rows on 1 and 2 ranks
 for k in range(4):
     t = 0.1 * k
     u.interpolate(lambda x, t=t: np.vstack([x[0] + t, x[1] * x[2] * (1 + t), np.sin(3 * x[0] + t)]))
@@ -26,12 +26,12 @@ for k in range(4):
 snaps = rec.snapshots()
 Q = snaps.Q if comm.rank == 0 else None
 times = snaps.times if comm.rank == 0 else None
-bp = write_vtx(out.with_suffix(".bp"), V, Q, times)     # states on rank 0 only
+bp = write_vtx(out.with_suffix(".bp"), V, Q, times, state_map=rec.state_map)  # Q on rank 0 only
 
 refused = 0
 try:  # a NaN on rank 0 only: every rank refuses, nothing is written
     write_vtx(out.with_name("bad.bp"), V, None if Q is None else np.where(Q == Q.max(), np.nan, Q),
-              times)
+              times, state_map=rec.state_map)
 except lo.errors.InputError:
     refused = 1
 refused = comm.allreduce(refused, op=MPI.MIN)

@@ -165,9 +165,9 @@ def test_bad_state_for_function(recorded):
     other = dolfinx.fem.functionspace(V.mesh, ("Lagrange", 1))
     with pytest.raises(InputError, match="state map has"):
         states_to_function(V, Q[:, 0], StateMap.from_coordinates(other))
-    dg = dolfinx.fem.functionspace(V.mesh, ("DG", 1))  # several dofs per point: no default map
-    with pytest.raises(InputError, match="explicit StateMap"):
-        states_to_function(dg, np.zeros(dg.dofmap.index_map.size_global))
+    dg = dolfinx.fem.functionspace(V.mesh, ("DG", 1))  # the default map is the dof order
+    f = states_to_function(dg, np.arange(dg.dofmap.index_map.size_global, dtype=float))
+    np.testing.assert_array_equal(f.x.array, np.arange(dg.dofmap.index_map.size_global))
 
 
 @pytest.mark.mpi

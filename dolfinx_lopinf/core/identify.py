@@ -1,0 +1,296 @@
+"""Which integrator made the snapshots: the scheme family and its parameters, from the data.
+
+Every scheme of :mod:`dolfinx_lopinf.core.schemes` gives a relation M Qm + C Qc + K Qk = B Uf
+that the snapshots of that scheme obey exactly. With M = I and C, K, B free (no symmetry,
+no definiteness), the relation of the true scheme still holds exactly on Galerkin-reduced
+data (multiply by M^{-1}), so
+
+    rho(theta) = min_{C, K, B} ||Qm + C Qc + K Qk - B Uf||_F / ||Qm||_F
+
+- one linear least squares per parameter vector theta = (alpha_m, alpha_f, beta, gamma) -
+drops to the closure level (rounding for exact data, the POD truncation for FOM data) at the
+scheme that made the data, and is larger elsewhere. :func:`identify` evaluates rho on the
+standard members (Newmark's average / linear acceleration, Fox-Goodwin, central
+differences, the midpoint rule, HHT-alpha and generalised-alpha over their usual
+parameters), then refines the best member's family by Gauss-Newton on the residual vector
+(``scipy.optimize.least_squares``, bounded to the stable range).
+
+What the data can tell. A free response pins the family but not always every parameter:
+Newmark's three-point relation spans every three-point recurrence, so beta and gamma are
+seen only through the loads (the weights P(E) on f); generalised-alpha with
+alpha_m = alpha_f is Newmark times a common factor. A refinement is therefore kept only when
+it lowers rho by :data:`CLEAR_GAIN` or more; otherwise the standard member stays (it
+predicts the same free response). The choice and the residuals are returned for the report.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from . import schemes as S
+
+#: a refinement (or a less standard member) must lower the relative residual this much
+CLEAR_GAIN = 2.0
+#: relative residuals below this are ties: the relation holds to the data's rounding (or
+#: to 8th-order differences on a fine grid), so the order of the members decides, not the
+#: last bits (a different BLAS must give the same verdict)
+RESIDUAL_FLOOR = 1e-10
+#: Gauss-Newton iterations per refinement (it converges in a few where the data pin the
+#: parameters; where they do not, more iterations buy nothing)
+MAX_ITERATIONS = 30
+#: a refined scheme whose residual's Jacobian (columns: the parameters) has a singular-value
+#: ratio below this is reported as not determined by the data
+UNDETERMINED = 1e-3
+
+
+def standard_members() -> list:
+    """The grid: the schemes users run, with their usual parameters."""
+    members = [S.Newmark(), S.Midpoint(), S.Newmark(1 / 6, 0.5), S.Newmark(1 / 12, 0.5),
+               S.CentralDifference()]
+    members += [S.HHT(a) for a in (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 1 / 3)]
+    members += [S.GeneralizedAlpha(rho_inf=rho) for rho in (0.0, 0.2, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)]
+    members.append(S.GeneralizedAlpha(0.2, 0.4))  # the COMET elastodynamics tutorial
+    return members
+
+
+class _Compressed:
+    """One trajectory's data, stacked as every shifted copy a relation can combine and
+    compressed by one QR: S = [u_k; u_{k+1}; u_{k+2}; u_{k+3}; f_{k+s_lo} .. f_{k+s_hi}]
+    (columns k), S^T = Q R. Every generalised-alpha / midpoint relation is A S for a small A
+    that depends on the scheme, so its free least squares has the residual of
+    R A_y^T - R A_d^T X: the same norm, at a cost independent of the number of samples.
+    Inputs must lie on a uniform grid of the samples' spacing (any offset); else ValueError."""
+
+    def __init__(self, Qh, times, U, ti):
+        r, K = Qh.shape
+        dt = float(np.mean(np.diff(times)))
+        self.r, self.dt, self.m = r, dt, 0 if U is None else U.shape[0]
+        blocks = [Qh[:, j:K - 3 + j] for j in range(4)]
+        self.shifts = []
+        cols = K - 3
+        if U is not None:
+            ti = times if ti is None else np.asarray(ti, dtype=float)
+            a, b = _uniform_run(ti, dt)
+            U, ti = U[:, a:b], ti[a:b]
+            self.c = (ti[0] - times[0]) / dt  # offset of the load grid, in steps
+            lo_s = int(np.floor(0.5 - self.c - 1e-9))
+            hi_s = int(np.floor(3.0 - self.c + 1e-9)) + 1
+            k0 = max(0, -lo_s)
+            k1 = min(K - 3, U.shape[1] - hi_s)
+            if k1 - k0 < 8:
+                raise ValueError("too few columns")
+            self.shifts = list(range(lo_s, hi_s + 1))
+            # columns whose loads may be interpolated across a bend or jump of the load
+            # (not the load the loop applied, S.kinks) are left out
+            bent = S.kinks(U)
+            keep = ~np.any([bent[k0 + s_:k1 + s_] for s_ in self.shifts], axis=0)
+            if keep.sum() < 8:
+                raise ValueError("too few columns")
+            blocks = [B[:, k0:k1][:, keep] for B in blocks]
+            blocks += [U[:, k0 + s_:k1 + s_][:, keep] for s_ in self.shifts]
+            cols = int(keep.sum())
+        stacked = np.vstack(blocks)
+        self.R = scipy.linalg.qr(stacked.T, mode="r", check_finite=False)[0][:min(stacked.shape)]
+        self.cols = cols
+
+    def pieces(self, scheme):
+        """(Yt, Ct, Kt, Ft) of ``scheme``'s relation, compressed."""
+        if isinstance(scheme, S.Midpoint):
+            cm, cc, ck, cu, tau = scheme.coefficients(self.dt)
+            cm, cc, ck = (np.append(c, 0.0) for c in (cm, cc, ck))
+        elif isinstance(scheme, S.GeneralizedAlpha):  # untrimmed: four points, loads at 1 - af
+            cm, cc, ck, cu, tau = S.GeneralizedAlpha.coefficients(scheme, self.dt)
+        else:
+            raise ValueError("no compressed form")
+        r, R = self.r, self.R
+
+        def comb(c):
+            return sum(w * R[:, j * r:(j + 1) * r] for j, w in enumerate(c) if w != 0.0)
+
+        Ft = None
+        if self.m:
+            weights = np.zeros(len(self.shifts))
+            for j, w in enumerate(cu):
+                p = j + tau - self.c
+                i = int(np.floor(p + 1e-9))
+                frac = p - i if p - i > 1e-9 else 0.0
+                weights[i - self.shifts[0]] += w * (1 - frac)
+                if frac:
+                    weights[i + 1 - self.shifts[0]] += w * frac
+            base, m = 4 * r, self.m
+            Ft = sum(w * R[:, base + q * m:base + (q + 1) * m] for q, w in enumerate(weights) if w)
+        return comb(cm), comb(cc), comb(ck), Ft
+
+
+def _uniform_run(ti, dt):
+    """[a, b): the longest run of input times spaced dt (to 1e-9 dt); ValueError unless it
+    leaves out at most two samples at the ends (irregular inputs: the direct residual)."""
+    ok = np.abs(np.diff(ti) - dt) <= 1e-9 * dt + 4 * np.finfo(float).eps * np.max(np.abs(ti))
+    best, start = (0, 0), 0
+    for i, good in enumerate(np.append(ok, False)):
+        if not good:
+            if i + 1 - start > best[1] - best[0]:
+                best = (start, i + 1)
+            start = i + 1
+    if len(ti) - (best[1] - best[0]) > 2:
+        raise ValueError("irregular input times")
+    return best
+
+
+class Residual:
+    """rho(scheme) on one or several trajectories ``pieces`` = [(Qh, times, U, input_times,
+    Vh, Ah), ...] (Vh, Ah None unless recorded: then the (u, v, a) relation is used).
+
+    Generalised-alpha and midpoint relations on u alone use the compressed data
+    (:class:`_Compressed`); the others (finite differences, the (u, v, a) relation, inputs
+    on an irregular grid) form the relation's arrays."""
+
+    def __init__(self, pieces):
+        self.pieces = pieces
+        self.forced = pieces[0][2] is not None
+        self.states = all(p[4] is not None and p[5] is not None for p in pieces)
+        self.evaluations = 0
+        self._compressed = None
+        if not self.states:
+            try:
+                self._compressed = [_Compressed(Qh, t, U, ti) for Qh, t, U, ti, _, _ in pieces]
+            except ValueError:
+                self._compressed = None
+
+    def arrays(self, scheme):
+        parts = []
+        for Qh, times, U, ti, Vh, Ah in self.pieces:
+            if self.states and isinstance(scheme, S.GeneralizedAlpha):
+                parts.append(scheme.state_relation(Qh, Vh, Ah, times, U, ti, missing="zero"))
+            else:
+                parts.append(scheme.relation(Qh, times, U, ti, missing="zero"))
+        Qk, Qc, Qm = (np.hstack([p[i] for p in parts]) for i in range(3))
+        Uf = None if parts[0][3] is None else np.hstack([p[3] for p in parts])
+        return Qk, Qc, Qm, Uf
+
+    def vector(self, scheme) -> np.ndarray:
+        """The least-squares residual of the free fit (a vector whose length depends only on
+        the kind of relation), divided by ||Qm||_F."""
+        self.evaluations += 1
+        if self._compressed is not None and isinstance(scheme, (S.GeneralizedAlpha, S.Midpoint)):
+            parts = [c.pieces(scheme) for c in self._compressed]
+            Y = np.vstack([p[0] for p in parts])
+            D = np.hstack([np.vstack([p[i] for p in parts]) for i in (1, 2)]
+                          + ([np.vstack([p[3] for p in parts])] if self.forced else []))
+        else:
+            Qk, Qc, Qm, Uf = self.arrays(scheme)
+            Y = Qm.T
+            D = np.vstack([Qc, Qk] + ([] if Uf is None else [Uf])).T
+        scale = np.linalg.norm(D, axis=0)
+        scale[scale == 0] = 1.0
+        Qd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)[0]
+        res = Y - Qd @ (Qd.T @ Y)
+        return res.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
+
+    def __call__(self, scheme) -> float:
+        return float(np.linalg.norm(self.vector(scheme)))
+
+
+def _fit(residual: Residual, build, x0, lo, hi):
+    """Gauss-Newton (bounded least squares, central-difference Jacobian) on rho over the
+    parameters x of ``build(x)``; (scheme, rho) or None."""
+    x0 = np.clip(np.asarray(x0, dtype=float), np.add(lo, 1e-9), np.subtract(hi, 1e-9))
+    try:
+        sol = scipy.optimize.least_squares(lambda x: residual.vector(build(x)), x0,
+                                           bounds=(lo, hi), jac="3-point", diff_step=1e-6,
+                                           xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=MAX_ITERATIONS)
+        best = build(sol.x)
+        sv = np.linalg.svd(sol.jac, compute_uv=False) if sol.jac.size else np.ones(1)
+        return best, residual(best), float(sv[-1] / sv[0]) if sv[0] > 0 else 0.0
+    except (ValueError, np.linalg.LinAlgError):  # a parameter vector outside the family
+        return None
+
+
+def _refinements(residual: Residual, rho: dict):
+    """Refined candidates, from the fewest parameters to the most: [(n_params, scheme, rho)].
+
+    HHT's alpha and generalised-alpha's rho_inf (one parameter each) from their best grid
+    member; then (alpha_m, alpha_f) with the optimal beta, gamma; with loads also Newmark's
+    (beta, gamma) and all four generalised-alpha parameters (only the loads show them)."""
+    def best(kind):
+        pool = [m for m in rho if type(m) is kind]
+        return min(pool, key=rho.get) if pool else None
+
+    out = []
+    hht, ga = best(S.HHT), best(S.GeneralizedAlpha)
+    if hht is not None:
+        out.append((1, _fit(residual, lambda x: S.HHT(x[0]), [hht.alpha], [0.0], [1 / 3])))
+    if ga is not None:
+        rho0 = min(max((1 + ga.alpha_m) / (2 - ga.alpha_m), 0.0), 1.0)  # inverts alpha_m(rho)
+        out.append((1, _fit(residual, lambda x: S.GeneralizedAlpha(rho_inf=x[0]), [rho0],
+                            [0.0], [1.0])))
+    start = min(rho, key=rho.get)
+    am, af = (start.alpha_m, start.alpha_f) if isinstance(start, S.GeneralizedAlpha) else (0.1, 0.2)
+    # (alpha_f, d = alpha_f - alpha_m >= 0): the optimal gamma = 1/2 + d stays >= 1/2
+    two = _fit(residual, lambda x: S.GeneralizedAlpha(x[0] - x[1], x[0]), [af, af - am],
+               [0.0, 0.0], [0.5, 1.0])
+    out.append((2, two))
+    if residual.forced and not residual.states:
+        nm = best(S.Newmark) or S.Newmark()
+        out.append((2, _fit(residual, lambda x: S.Newmark(x[0], x[1]), [nm.beta, nm.gamma],
+                            [0.0, 0.5], [1.0, 1.5])))
+    if residual.forced:
+        g = two[0] if two is not None else (ga or S.GeneralizedAlpha(rho_inf=0.8))
+        out.append((4, _fit(residual, lambda x: S.GeneralizedAlpha(*x),
+                            [g.alpha_m, g.alpha_f, g.beta, g.gamma], [-1.0, 0.0, 0.0, 0.5],
+                            [0.5, 0.5, 1.5, 1.5])))
+    return [(n,) + c for n, c in out if c is not None]
+
+
+def identify(pieces, *, members=None, refine: bool = True):
+    """The scheme whose relation the data obey best (module docstring).
+
+    Args:
+        pieces: [(Qh (r, K), times (K,), U (m, K_u) or None, input_times or None,
+            Vh or None, Ah or None), ...], one per trajectory.
+        members: the schemes to compare first (default :func:`standard_members`).
+        refine: refine the best member's parameters.
+
+    Returns:
+        ``(scheme, report)``; report: ``residuals`` (spec -> rho of every member),
+        ``chosen``, ``refined`` (spec and rho, or None), ``why``, ``evaluations``.
+    """
+    residual = Residual(pieces)
+    members = standard_members() if members is None else list(members)
+    rho = {}
+    for m in members:
+        try:
+            rho[m] = residual(m)
+        except (ValueError, np.linalg.LinAlgError):
+            rho[m] = float("inf")
+    best_rho = max(min(rho.values()), RESIDUAL_FLOOR)
+    # the first (most standard) member within CLEAR_GAIN of the best: a near-tie is decided
+    # by the order of the list, never by the last bits
+    chosen = next(m for m in members if rho[m] <= CLEAR_GAIN * best_rho)
+    report = {"residuals": {m.spec: v for m, v in rho.items()}, "refined": None}
+    why = (f"relation residual {rho[chosen]:.3g} ({chosen.spec}); best of {len(members)} "
+           f"standard members {best_rho:.3g}")
+    if refine:
+        refined = _refinements(residual, rho)
+        report["refined"] = {c.spec: v for _, c, v, _ in refined}
+        lowest = max(min([rho[chosen]] + [v for _, _, v, _ in refined]), RESIDUAL_FLOOR)
+        # fewest parameters first; a refinement must be CLEAR_GAIN better than the member
+        for _, cand, value, sensitivity in sorted(refined, key=lambda x: (x[0], x[2])):
+            if max(value, RESIDUAL_FLOOR) * CLEAR_GAIN <= rho[chosen] and value <= CLEAR_GAIN * lowest:
+                why += f"; refined to {cand.spec}: {value:.3g}"
+                chosen = cand
+                if sensitivity < UNDETERMINED:
+                    report["undetermined"] = True
+                    why += (" - but the data barely determine these parameters (a free "
+                            "response or a single-frequency load); they reproduce the data, "
+                            "name the scheme if you know it")
+                break
+        else:
+            if refined:
+                why += (f"; no refinement is {CLEAR_GAIN:g}x better ({lowest:.3g}): the standard "
+                        "member is kept")
+    report.update(chosen=chosen.spec, why=why, evaluations=residual.evaluations,
+                  residual=residual(chosen))
+    return chosen, report
