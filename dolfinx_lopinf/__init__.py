@@ -21,7 +21,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     import dolfinx_solver  # noqa: F401
 
 from . import errors
-from .core import ddt
+from .core import ddt, schemes
 from .core.basis import Basis, pod
 from .core.fit import ReducedModel, fit
 from .core.ddt import derivatives, newmark_data, variational_data
@@ -50,6 +50,7 @@ _LAZY = {
     "probe": "fem.probes",
     "probe_points": "fem.probes",
     "GalerkinForce": "fem.galerkin_nonlinear",
+    "DerivedOutput": "fem.derived",
 }
 
 
@@ -61,7 +62,7 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["ddt", "errors", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+__all__ = ["ddt", "errors", "schemes", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
            "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom",
            "fit_polynomial", "PolynomialROM", "point_data", *_LAZY]

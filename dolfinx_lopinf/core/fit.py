@@ -38,13 +38,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import compiled, schemes
+from .holdout import prediction_error, split
 from .basis import Basis, from_svd, pod
 from ._checks import as_real_array
 from ..errors import InputError, SchemeMismatchWarning, warn
 from .identify import Residual, identify, standard_members
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
-from .rom import LagrangianROM, Trajectory, _affine_loop, load_rom, save_rom
+from .rom import LagrangianROM, Trajectory, load_rom, save_rom
 from .snapshots import Snapshots, check_scheme
 
 MASS_MODELS = ("auto", "identity", "learned")
@@ -59,6 +60,9 @@ IDENTITY_SPREAD = 0.05
 #: values exceed ID_RANK_RTOL of the largest (:func:`_identification_pieces`).
 ID_MAX_R = 24
 ID_RANK_RTOL = 1e-10
+#: ... and at most so many that the free fit (2r + m unknowns per row) has this many samples
+#: per unknown (fewer over-fit the truncated modes' closure error)
+ID_SAMPLES_PER_UNKNOWN = 8
 #: A named scheme whose relation residual exceeds the best one's by this factor is contradicted.
 MISMATCH = 3.0
 #: ... and exceeds this (below it both relations hold to the data's accuracy)
@@ -225,59 +229,6 @@ def _relation_data(scheme, piece):
     return scheme.relation(Qh, times, U, ti)
 
 
-def _held_back_error(ops, scheme, held, dt, backend) -> float:
-    """Relative error of the scheme's multistep recurrence of ``ops`` over the held-back
-    samples, started from the samples before them (``held`` = (Qh, times, U, ti))."""
-    Qh, times, U, ti = held
-    r = Qh.shape[0]
-    M = np.eye(r) if ops.M is None else ops.M
-    Gc, Hc, cu, tau_rel = scheme.recurrence(M, ops.C, ops.K, ops.B, dt)
-    lead = Gc.shape[0] // r  # samples that start the recurrence
-    n = Qh.shape[1] - lead
-    forcing = None
-    if U is not None and Hc is not None:
-        t_load = times[0] + (np.arange(n + len(cu) - 1) + tau_rel) * dt
-        F = schemes.sample_inputs(U, times if ti is None else ti, t_load, outside="nan")
-        W = sum(c * F[:, j:j + n] for j, c in enumerate(cu))
-        known = np.all(np.isfinite(W), axis=0)
-        n = int(np.argmin(known)) if not known.all() else n  # up to the last recorded load
-        if n < 1:
-            return float("inf")
-        forcing = [(0, n, Hc @ W[:, :n])]
-    X = np.empty((Gc.shape[0], n + 1))
-    x = np.ascontiguousarray(Qh[:, :lead].T.ravel())
-    X[:, 0] = x
-    with np.errstate(all="ignore"):
-        _affine_loop(Gc, x, forcing, n, 1, X, backend)
-    pred = X[-r:, 1:]
-    ref = Qh[:, lead:lead + n]
-    err = np.linalg.norm(pred - ref) / max(np.linalg.norm(ref), np.finfo(float).tiny)
-    return float(err) if np.isfinite(err) else float("inf")
-
-
-def _split(pieces, holdout):
-    """(fit parts, held-back parts): the first 1 - holdout of every trajectory, and the rest
-    with the samples before it that start a four-point recurrence."""
-    fit_part, held = [], []
-    for Qh, times, U, ti, Vh, Ah in pieces:
-        K = Qh.shape[1]
-        k_cut = int(round((1 - holdout) * K))
-        if k_cut < 17 or K - k_cut < 4:
-            raise InputError(f"a trajectory of {K} samples is too short to compare models on a "
-                             f"held-back {holdout:.0%} (it needs >= 17 samples before and 4 after "
-                             "the cut); record longer, or pass scheme=, mass= and damping= to "
-                             "skip the comparison")
-        def cut(a, k=k_cut):
-            return None if a is None else a[:, :k]
-
-        U_fit = U[:, :k_cut] if U is not None and ti is None else U
-        fit_part.append((Qh[:, :k_cut], times[:k_cut], U_fit, ti, cut(Vh), cut(Ah)))
-        start = k_cut - 3
-        held.append((Qh[:, start:], times[start:], U[:, start:] if U is not None and ti is None
-                     else U, ti))
-    return fit_part, held
-
-
 def _is_scaled_identity(M, Qh) -> bool:
     """Whether the learned mass is c I in every direction the data see: the eigenvalues of M
     in the metric of the data's covariance spread by less than IDENTITY_SPREAD."""
@@ -296,7 +247,7 @@ def _candidates(relations, masses, dampings):
 
 def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
     """Held-back error of every candidate (module docstring)."""
-    fit_part, held = _split(pieces, holdout)
+    fit_part, held = split(pieces, holdout)
     backend = compiled.resolve_backend("auto")
     errors, notes = {}, {}
     for mass, damping, rel in _candidates(relations, masses, dampings):
@@ -312,7 +263,7 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
             notes[(mass, damping, rel)] = "learned Mh = c I: the same model as Mh = I"
             errors[(mass, damping, rel)] = float("inf")
             continue
-        errors[(mass, damping, rel)] = max(_held_back_error(ops, schemes.rom_scheme(rel)
+        errors[(mass, damping, rel)] = max(prediction_error(ops, schemes.rom_scheme(rel)
                                                             if isinstance(rel, schemes.FiniteDifferences)
                                                             else rel, h, dt, backend)
                                            for h in held)
@@ -441,8 +392,8 @@ def _identification_pieces(trajs, svd, r):
     U, s = svd
     n_sig = int((s > ID_RANK_RTOL * s[0]).sum()) if s[0] > 0 else 1
     m = 0 if trajs[0].U is None else trajs[0].U.shape[0]
-    n_min = min(len(t.times) for t in trajs)
-    cap = max(1, min(ID_MAX_R, int((n_min / 4 - m) / 2)))
+    n_fit = 0.75 * sum(len(t.times) for t in trajs)  # the free fit of the held-back check
+    cap = max(1, min(ID_MAX_R, int((n_fit / ID_SAMPLES_PER_UNKNOWN - m) / 2)))
     r_id = max(1, min(max(n_sig, min(r, cap)), cap, len(s)))
     return _pieces(trajs, U[:, :r_id].T)
 

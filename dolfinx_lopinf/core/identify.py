@@ -30,9 +30,20 @@ import scipy.linalg
 import scipy.optimize
 
 from . import schemes as S
+from ..errors import InputError
+from .holdout import prediction_error, split
+from .inference import MechanicalOperators
 
 #: a refinement (or a less standard member) must lower the relative residual this much
 CLEAR_GAIN = 2.0
+#: members within this factor of the best relation residual are also judged by prediction
+SHORTLIST = 30.0
+#: held-back prediction errors within this factor of the best are ties (the list's order
+#: decides: two members the data cannot tell apart - the midpoint rule and average
+#: acceleration on linearly varying loads - differ by up to 5x through the free fit's noise),
+#: and errors below PREDICTION_FLOOR are ties at that floor
+MARGIN = 3.0
+PREDICTION_FLOOR = 1e-9
 #: relative residuals below this are ties: the relation holds to the data's rounding (or
 #: to 8th-order differences on a fine grid), so the order of the members decides, not the
 #: last bits (a different BLAS must give the same verdict)
@@ -66,7 +77,7 @@ class _Compressed:
     def __init__(self, Qh, times, U, ti):
         r, K = Qh.shape
         dt = float(np.mean(np.diff(times)))
-        self.r, self.dt, self.m = r, dt, 0 if U is None else U.shape[0]
+        self.r, self.dt, self.m, self.c = r, dt, 0 if U is None else U.shape[0], 0.0
         blocks = [Qh[:, j:K - 3 + j] for j in range(4)]
         self.shifts = []
         cols = K - 3
@@ -82,17 +93,20 @@ class _Compressed:
             if k1 - k0 < 8:
                 raise ValueError("too few columns")
             self.shifts = list(range(lo_s, hi_s + 1))
-            # columns whose loads may be interpolated across a bend or jump of the load
-            # (not the load the loop applied, S.kinks) are left out
+            blocks = [B[:, k0:k1] for B in blocks]
+            blocks += [U[:, k0 + s_:k1 + s_] for s_ in self.shifts]
+            # a scheme that interpolates its loads between samples leaves out the columns
+            # next to a bend or jump of the load (the samples do not give the load the loop
+            # applied there, S.kinks); one that samples them exactly keeps every column
             bent = S.kinks(U)
             keep = ~np.any([bent[k0 + s_:k1 + s_] for s_ in self.shifts], axis=0)
             if keep.sum() < 8:
                 raise ValueError("too few columns")
-            blocks = [B[:, k0:k1][:, keep] for B in blocks]
-            blocks += [U[:, k0 + s_:k1 + s_][:, keep] for s_ in self.shifts]
-            cols = int(keep.sum())
+            stacked = np.vstack(blocks)
+            self.R_bent = _qr_r(stacked[:, keep])
+            cols = k1 - k0
         stacked = np.vstack(blocks)
-        self.R = scipy.linalg.qr(stacked.T, mode="r", check_finite=False)[0][:min(stacked.shape)]
+        self.R = _qr_r(stacked)
         self.cols = cols
 
     def pieces(self, scheme):
@@ -105,6 +119,9 @@ class _Compressed:
         else:
             raise ValueError("no compressed form")
         r, R = self.r, self.R
+        positions = [j + tau - self.c for j in range(len(cu))]
+        if self.m and any(abs(p - round(p)) > 1e-9 for p in positions):
+            R = self.R_bent  # interpolated loads
 
         def comb(c):
             return sum(w * R[:, j * r:(j + 1) * r] for j, w in enumerate(c) if w != 0.0)
@@ -122,6 +139,11 @@ class _Compressed:
             base, m = 4 * r, self.m
             Ft = sum(w * R[:, base + q * m:base + (q + 1) * m] for q, w in enumerate(weights) if w)
         return comb(cm), comb(cc), comb(ck), Ft
+
+
+def _qr_r(stacked):
+    """R of the thin QR of stacked^T (the compressed data)."""
+    return scipy.linalg.qr(stacked.T, mode="r", check_finite=False)[0][:min(stacked.shape)]
 
 
 def _uniform_run(ti, dt):
@@ -174,6 +196,15 @@ class Residual:
         """The least-squares residual of the free fit (a vector whose length depends only on
         the kind of relation), divided by ||Qm||_F."""
         self.evaluations += 1
+        Y, D = self._system(scheme)
+        scale = np.linalg.norm(D, axis=0)
+        scale[scale == 0] = 1.0
+        Qd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)[0]
+        res = Y - Qd @ (Qd.T @ Y)
+        return res.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
+
+    def _system(self, scheme):
+        """(Y, D): the free least squares min ||Y - D Z||, Z = [-C^T; -K^T; B^T]."""
         if self._compressed is not None and isinstance(scheme, (S.GeneralizedAlpha, S.Midpoint)):
             parts = [c.pieces(scheme) for c in self._compressed]
             Y = np.vstack([p[0] for p in parts])
@@ -183,11 +214,17 @@ class Residual:
             Qk, Qc, Qm, Uf = self.arrays(scheme)
             Y = Qm.T
             D = np.vstack([Qc, Qk] + ([] if Uf is None else [Uf])).T
+        return Y, D
+
+    def free_operators(self, scheme) -> MechanicalOperators:
+        """The free fit (M = I; C, K, B unconstrained) of ``scheme``'s relation."""
+        Y, D = self._system(scheme)
         scale = np.linalg.norm(D, axis=0)
         scale[scale == 0] = 1.0
-        Qd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)[0]
-        res = Y - Qd @ (Qd.T @ Y)
-        return res.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
+        Z = scipy.linalg.lstsq(D / scale, -Y, check_finite=False)[0] / scale[:, None]
+        r = Y.shape[1]
+        B = Z[2 * r:].T if self.forced else None
+        return MechanicalOperators(K=Z[r:2 * r].T, C=Z[:r].T, B=None if B is None else -B)
 
     def __call__(self, scheme) -> float:
         return float(np.linalg.norm(self.vector(scheme)))
@@ -244,18 +281,30 @@ def _refinements(residual: Residual, rho: dict):
     return [(n,) + c for n, c in out if c is not None]
 
 
-def identify(pieces, *, members=None, refine: bool = True):
-    """The scheme whose relation the data obey best (module docstring).
+def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25):
+    """The scheme whose relation the data obey, and whose recurrence predicts them, best
+    (module docstring).
+
+    Two looks at the data. The relation residual rho on all of it ranks the members and
+    drives the refinement; where the data resolve the scheme (synthetic data, enough POD
+    coordinates) it alone decides. Where the truncated modes' closure error is of the size
+    of the differences between schemes, free operators can absorb it better for a wrong
+    scheme; so the members within SHORTLIST of the best rho, and the refinements, are also
+    fitted (free operators) on the first ``1 - holdout`` of each trajectory and predict the
+    rest with their recurrence. The first member in order whose prediction error is within
+    MARGIN of the best is kept; a refinement replaces it when it predicts CLEAR_GAIN better.
 
     Args:
         pieces: [(Qh (r, K), times (K,), U (m, K_u) or None, input_times or None,
             Vh or None, Ah or None), ...], one per trajectory.
         members: the schemes to compare first (default :func:`standard_members`).
-        refine: refine the best member's parameters.
+        refine: refine the best members' parameters.
+        holdout: the fraction held back for the prediction check (0: residuals only).
 
     Returns:
         ``(scheme, report)``; report: ``residuals`` (spec -> rho of every member),
-        ``chosen``, ``refined`` (spec and rho, or None), ``why``, ``evaluations``.
+        ``refined`` (spec -> rho), ``predictions`` (spec -> held-back error), ``chosen``,
+        ``why``, ``evaluations``.
     """
     residual = Residual(pieces)
     members = standard_members() if members is None else list(members)
@@ -266,31 +315,81 @@ def identify(pieces, *, members=None, refine: bool = True):
         except (ValueError, np.linalg.LinAlgError):
             rho[m] = float("inf")
     best_rho = max(min(rho.values()), RESIDUAL_FLOOR)
-    # the first (most standard) member within CLEAR_GAIN of the best: a near-tie is decided
-    # by the order of the list, never by the last bits
-    chosen = next(m for m in members if rho[m] <= CLEAR_GAIN * best_rho)
-    report = {"residuals": {m.spec: v for m, v in rho.items()}, "refined": None}
-    why = (f"relation residual {rho[chosen]:.3g} ({chosen.spec}); best of {len(members)} "
-           f"standard members {best_rho:.3g}")
-    if refine:
-        refined = _refinements(residual, rho)
-        report["refined"] = {c.spec: v for _, c, v, _ in refined}
-        lowest = max(min([rho[chosen]] + [v for _, _, v, _ in refined]), RESIDUAL_FLOOR)
-        # fewest parameters first; a refinement must be CLEAR_GAIN better than the member
-        for _, cand, value, sensitivity in sorted(refined, key=lambda x: (x[0], x[2])):
-            if max(value, RESIDUAL_FLOOR) * CLEAR_GAIN <= rho[chosen] and value <= CLEAR_GAIN * lowest:
-                why += f"; refined to {cand.spec}: {value:.3g}"
-                chosen = cand
-                if sensitivity < UNDETERMINED:
-                    report["undetermined"] = True
-                    why += (" - but the data barely determine these parameters (a free "
-                            "response or a single-frequency load); they reproduce the data, "
-                            "name the scheme if you know it")
-                break
-        else:
-            if refined:
-                why += (f"; no refinement is {CLEAR_GAIN:g}x better ({lowest:.3g}): the standard "
-                        "member is kept")
+    refined = _refinements(residual, rho) if refine else []
+    report = {"residuals": {m.spec: v for m, v in rho.items()},
+              "refined": {c.spec: v for _, c, v, _ in refined}}
+    chosen, why = _by_residual(members, rho, refined, report)
+    predictions = _predictions(pieces, members, rho, best_rho, refined, holdout)
+    if predictions:
+        report["predictions"] = {c.spec: e for c, e in predictions.items()}
+        chosen, why = _by_prediction(members, refined, predictions, report) or (chosen, why)
     report.update(chosen=chosen.spec, why=why, evaluations=residual.evaluations,
                   residual=residual(chosen))
     return chosen, report
+
+
+def _by_residual(members, rho, refined, report):
+    """The first (most standard) member within CLEAR_GAIN of the best residual - a near tie
+    is decided by the order of the list, never by the last bits - or a refinement that is
+    CLEAR_GAIN better than it."""
+    best_rho = max(min(rho.values()), RESIDUAL_FLOOR)
+    chosen = next(m for m in members if rho[m] <= CLEAR_GAIN * best_rho)
+    why = (f"relation residual {rho[chosen]:.3g} ({chosen.spec}); best of {len(members)} "
+           f"standard members {best_rho:.3g}")
+    lowest = max(min([rho[chosen]] + [v for _, _, v, _ in refined]), RESIDUAL_FLOOR)
+    for _, cand, value, sensitivity in sorted(refined, key=lambda x: (x[0], x[2])):
+        if max(value, RESIDUAL_FLOOR) * CLEAR_GAIN <= rho[chosen] and value <= CLEAR_GAIN * lowest:
+            why += f"; refined to {cand.spec}: {value:.3g}"
+            if sensitivity < UNDETERMINED:
+                report["undetermined"] = True
+                why += (" - but the data barely determine these parameters (a free response "
+                        "or a single-frequency load); they reproduce the data, name the "
+                        "scheme if you know it")
+            return cand, why
+    if refined:
+        why += f"; no refinement is {CLEAR_GAIN:g}x better ({lowest:.3g})"
+    return chosen, why
+
+
+def _predictions(pieces, members, rho, best_rho, refined, holdout):
+    """{scheme: held-back prediction error} of the shortlisted members and the refinements
+    (free operators fitted on the first part); {} when the data are too short to hold back."""
+    if not holdout:
+        return {}
+    try:
+        fit_part, held = split(pieces, holdout)
+        fitted = Residual(fit_part)
+    except (InputError, ValueError):
+        return {}
+    dt = float(np.mean(np.diff(pieces[0][1])))
+    shortlist = [m for m in members if rho[m] <= SHORTLIST * best_rho]
+    out = {}
+    for cand in shortlist + [c for _, c, _, _ in refined]:
+        try:
+            ops = fitted.free_operators(cand)
+            with np.errstate(all="ignore"):
+                out[cand] = max(prediction_error(ops, S.rom_scheme(cand), h, dt) for h in held)
+        except (ValueError, np.linalg.LinAlgError):
+            out[cand] = float("inf")
+    return out if any(np.isfinite(list(out.values()))) else {}
+
+
+def _by_prediction(members, refined, e, report):
+    """(scheme, why) from the held-back errors ``e``, or None (module docstring)."""
+    best = max(min(e.values()), PREDICTION_FLOOR)
+    standard = [m for m in members if m in e and e[m] <= MARGIN * best]
+    chosen = standard[0] if standard else None
+    for _, cand, _, sensitivity in sorted(refined, key=lambda x: x[0]):
+        if cand in e and e[cand] <= MARGIN * best and (
+                chosen is None or max(e[cand], PREDICTION_FLOOR) * CLEAR_GAIN <= e[chosen]):
+            chosen = cand
+            if sensitivity < UNDETERMINED:
+                report["undetermined"] = True
+            break
+    if chosen is None:
+        return None
+    return chosen, (f"held-back prediction error {e[chosen]:.3g} ({chosen.spec}) with free "
+                    f"operators, best {best:.3g} of {len(e)} candidates (those within "
+                    f"{SHORTLIST:g}x of the best relation residual, and the refinements); the "
+                    f"first standard member within {MARGIN:g}x is kept unless a refinement "
+                    f"predicts {CLEAR_GAIN:g}x better")

@@ -524,12 +524,13 @@ def kinks(U) -> np.ndarray:
 KINK_FACTOR = 50.0
 
 
-def sample_inputs(U, input_times, at, *, outside: str = "raise") -> np.ndarray:
+def sample_inputs(U, input_times, at, *, outside: str = "raise", bends: str = "nan") -> np.ndarray:
     """Inputs (m, len(at)) at times ``at``, linearly interpolated from U (m, K_u) acting at
     ``input_times`` (K_u,); exact where the times coincide (to 1e-9 of the spacing). Times
     outside the recorded ones raise an InputError, or (``outside="nan"``) give NaN - as do,
-    with ``outside="nan"``, values interpolated next to a bend or jump of the load
-    (:func:`kinks`), which the samples do not determine."""
+    with ``outside="nan"`` and ``bends="nan"``, values interpolated next to a bend or jump of
+    the load (:func:`kinks`), which the samples do not determine (``bends="keep"``: the
+    interpolated value, for a prediction that must go on)."""
     U = as_real_array(U, "inputs")
     U = U.reshape(1, -1) if U.ndim == 1 else U
     ti = as_real_array(input_times, "input_times")
@@ -552,7 +553,7 @@ def sample_inputs(U, input_times, at, *, outside: str = "raise") -> np.ndarray:
     w[np.abs(1 - w) * (ti[k + 1] - ti[k]) <= tol] = 1.0
     F = U[:, k] * (1 - w) + U[:, k + 1] * w
     F[:, out] = np.nan
-    if outside == "nan":
+    if outside == "nan" and bends == "nan":
         bent = kinks(U)
         between = (w > 0) & (w < 1)
         F[:, between & (bent[k] | bent[k + 1])] = np.nan
