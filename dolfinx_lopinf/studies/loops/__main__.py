@@ -4,7 +4,8 @@
 For each user loop: record training and test data with lo.SnapshotRecorder, fit lo.fit with
 today's defaults and print lo.fit's unseen-load error beside the intrusive ROM of the loop's
 own scheme and the projection floor (study.py). ``--verify`` also runs the reference with the
-full basis (r = n) against the loop at the chosen size. Writes OUT/metrics.json.
+full basis (r = n) against the loop at the chosen size. Writes OUT/metrics.json and the
+recorded snapshots OUT/<loop>_{train,test[,free]}.npz (re-fit them with lo.Snapshots.load).
 """
 
 from __future__ import annotations
@@ -26,10 +27,12 @@ def main(argv=None):
     p.add_argument("--out", default="results/loops")
     args = p.parse_args(argv)
     rs = tuple(int(x) for x in args.r.split(","))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in args.loops.split(","):
         t0 = time.perf_counter()
-        res = study.run_loop(name, args.size, rs)
+        res = study.run_loop(name, args.size, rs, out=out)
         if args.verify:
             res["verify_r_eq_n"] = study.verify(study.load_loop(name), args.size)
         res["study_seconds"] = time.perf_counter() - t0
@@ -44,7 +47,7 @@ def main(argv=None):
                "errors": "relative Frobenius errors on the unseen test load; out = point output "
                          "(loop.OUTPUT), st = states; floor = ||Q - W W^T Q|| / ||Q|| in lo.fit's POD basis",
                "loops": results}
-    path = write_metrics(Path(args.out), metrics)
+    path = write_metrics(out, metrics)
     print(f"wrote {path}")
     return metrics
 

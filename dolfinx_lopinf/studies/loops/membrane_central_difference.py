@@ -32,7 +32,7 @@ SOURCE_AT, SOURCE_WIDTH = (0.3, 0.4), 0.15
 SIZES = {
     "quick": {"cells": 16, "dt": 0.02, "t_train": 1.0, "t_test": 1.0, "t_free": 4.0},
     "default": {"cells": 44, "dt": 0.01, "t_train": 2.0, "t_test": 2.0, "t_free": 20.0,
-                "extra_r": (16, 32)},  # the study adds these r: a wave needs more modes
+                "extra_r": (16,)},  # the study adds this r: a wave needs more modes
 }
 OUTPUT = {"points": [[0.7, 0.6, 0.0]], "component": None}
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import importlib
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -107,8 +108,10 @@ def leapfrog_energy(Q, M, K, dt):
     return 0.5 * np.einsum("ik,ik->k", D, M @ D) + 0.5 * np.einsum("ik,ik->k", Q[:, :-1], K @ Q[:, 1:])
 
 
-def run_loop(name, size="default", rs=(2, 4, 8)):
-    """Everything the table shows for one loop (a plain dict for metrics.json)."""
+def run_loop(name, size="default", rs=(2, 4, 8), out=None):
+    """Everything the table shows for one loop (a plain dict for metrics.json); with ``out``,
+    the recorded Snapshots are saved there too (``{name}_{train,test,free}.npz``, to re-fit
+    without running the loop: ``lo.Snapshots.load``)."""
     loop = load_loop(name)
     pre = loop.SIZES[size]
     train, rec, info, _ = record(loop, loop.train_load, pre["t_train"], size)
@@ -123,10 +126,15 @@ def run_loop(name, size="default", rs=(2, 4, 8)):
            "fom_seconds_train": info["seconds"], "fom_seconds_test": info_test["seconds"],
            "output_check": reference.rel_error(train.Y, E_state @ train.Q),
            "max_abs_output_test": float(np.abs(test.Y).max()), "rows": []}
+    if out is not None:
+        train.save(Path(out) / f"{name}_train.npz")
+        test.save(Path(out) / f"{name}_test.npz")
     n_test = len(test.times) - 1
     free_run = None
     if hasattr(loop, "free_load"):
         free, _, info_free, _ = record(loop, loop.free_load, pre["t_free"], size)
+        if out is not None:
+            free.save(Path(out) / f"{name}_free.npz")
         k_off = int(np.searchsorted(free.times, 0.5 + 1e-9))
         M, K = ops["M"], ops["K"]
         e_fom = leapfrog_energy(free.Q, M, K, free.dt)[k_off:]
