@@ -118,12 +118,15 @@ def test_reference_generalised_alpha_limits():
 
 
 def test_study_end_to_end(tmp_path):
+    from dolfinx_lopinf import Snapshots
     from dolfinx_lopinf.studies.loops.__main__ import main
 
     names = ["newmark_nonlinear_problem", "membrane_central_difference"]
     metrics = main(["--size", "quick", "--r", "2,4", "--loops", ",".join(names), "--out", str(tmp_path)])
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     assert set(on_disk["loops"]) == set(names) == set(metrics["loops"])
+    saved = Snapshots.load(tmp_path / "membrane_central_difference_free.npz")  # re-fit without the loop
+    assert saved.Q.shape[1] == on_disk["loops"]["membrane_central_difference"]["free_run"]["steps"] + 1
     for name in names:
         res = on_disk["loops"][name]
         assert res["output_check"] < 1e-12  # the recorder's outputs = the study's E_state @ Q

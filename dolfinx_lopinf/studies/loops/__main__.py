@@ -32,7 +32,7 @@ def main(argv=None):
     results = {}
     for name in args.loops.split(","):
         t0 = time.perf_counter()
-        res = study.run_loop(name, args.size, rs, out=out)
+        res = study.run_loop(name, args.size, rs, save_to=out)
         if args.verify:
             res["verify_r_eq_n"] = study.verify(study.load_loop(name), args.size)
         res["study_seconds"] = time.perf_counter() - t0

@@ -108,8 +108,8 @@ def leapfrog_energy(Q, M, K, dt):
     return 0.5 * np.einsum("ik,ik->k", D, M @ D) + 0.5 * np.einsum("ik,ik->k", Q[:, :-1], K @ Q[:, 1:])
 
 
-def run_loop(name, size="default", rs=(2, 4, 8), out=None):
-    """Everything the table shows for one loop (a plain dict for metrics.json); with ``out``,
+def run_loop(name, size="default", rs=(2, 4, 8), save_to=None):
+    """Everything the table shows for one loop (a plain dict for metrics.json); with ``save_to``,
     the recorded Snapshots are saved there too (``{name}_{train,test,free}.npz``, to re-fit
     without running the loop: ``lo.Snapshots.load``)."""
     loop = load_loop(name)
@@ -126,15 +126,15 @@ def run_loop(name, size="default", rs=(2, 4, 8), out=None):
            "fom_seconds_train": info["seconds"], "fom_seconds_test": info_test["seconds"],
            "output_check": reference.rel_error(train.Y, E_state @ train.Q),
            "max_abs_output_test": float(np.abs(test.Y).max()), "rows": []}
-    if out is not None:
-        train.save(Path(out) / f"{name}_train.npz")
-        test.save(Path(out) / f"{name}_test.npz")
+    if save_to is not None:
+        train.save(Path(save_to) / f"{name}_train.npz")
+        test.save(Path(save_to) / f"{name}_test.npz")
     n_test = len(test.times) - 1
     free_run = None
     if hasattr(loop, "free_load"):
         free, _, info_free, _ = record(loop, loop.free_load, pre["t_free"], size)
-        if out is not None:
-            free.save(Path(out) / f"{name}_free.npz")
+        if save_to is not None:
+            free.save(Path(save_to) / f"{name}_free.npz")
         k_off = int(np.searchsorted(free.times, 0.5 + 1e-9))
         M, K = ops["M"], ops["K"]
         e_fom = leapfrog_energy(free.Q, M, K, free.dt)[k_off:]
