@@ -139,3 +139,25 @@ def test_study_end_to_end(tmp_path):
     free = on_disk["loops"]["membrane_central_difference"]
     assert free["free_run"]["fom_energy_drift"] < 1e-10  # central differences conserve it
     assert all(x["intrusive_free_energy_drift"] < 1e-10 for x in free["rows"])
+
+
+@pytest.mark.parametrize("name", LOOPS)
+def test_loops_are_user_code(name):
+    """The loops are the users' programs: no import of dolfinx_lopinf, dolfinx_solver first,
+    and the interface the study relies on."""
+    import ast
+    import inspect
+
+    loop = study.load_loop(name)
+    tree = ast.parse(inspect.getsource(loop))
+    imported = [a.name for node in tree.body if isinstance(node, ast.Import) for a in node.names] + \
+        [node.module for node in tree.body if isinstance(node, ast.ImportFrom)]
+    assert not any(m.startswith("dolfinx_lopinf") for m in imported), imported
+    first_fenics = next(m for m in imported if m.split(".")[0] in ("dolfinx", "ufl", "mpi4py", "petsc4py",
+                                                                     "dolfinx_solver"))
+    assert first_fenics == "dolfinx_solver"
+    for attr in ("simulate", "train_load", "test_load", "SIZES", "OUTPUT", "scheme", "fe_forms"):
+        assert hasattr(loop, attr), attr
+    assert set(loop.SIZES) == {"quick", "default"}
+    assert loop.train_load(0.0) == 0.0 and loop.test_load(0.0) == 0.0  # from rest, consistent a_0
+    assert {"name", "alpha_m", "alpha_f", "beta", "gamma", "record_every"} <= set(loop.scheme())
