@@ -1,0 +1,214 @@
+"""The user-loop study: record each loop with ``lo.SnapshotRecorder``, fit ``lo.fit`` with
+today's defaults, and score it against the intrusive ROM of the loop's own scheme and the
+projection floor (the "before" figures for scheme-aware fitting).
+
+Per loop and r, on the unseen test load (predictions from rest, the loop's own inputs):
+
+* ``lofit``: ``lo.fit(train, r)`` (defaults), ``model.predict(n, inputs=test.U)`` - the
+  inputs as the loop recorded them (``applied_load``, taken at the loop's own load times);
+* ``intrusive``: Galerkin operators W^T {M, C, K, B} in the same POD basis W (``model.basis``)
+  integrated by :func:`reference.integrate` with the loop's scheme, step and load times;
+* ``floor``: ||Q - W W^T Q||_F / ||Q||_F of the test states (no ROM in span W does better).
+
+Errors are relative Frobenius errors of the point output y (``loop.OUTPUT``) and of the
+states. The membrane loop also runs a long free vibration (source off after 0.5 s) and
+reports the drift of the central-difference energy
+E_{k+1/2} = 1/2 d_k^T M d_k + 1/2 q_k^T K q_{k+1}, d_k = (q_{k+1} - q_k)/dt (exactly
+conserved by the unforced loop) of the FOM and of both ROMs' reconstructed states.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+import dolfinx_lopinf as lo
+from . import operators, reference
+
+LOOPS = ("comet_gen_alpha", "hht_plane_strain", "membrane_central_difference",
+         "newmark_nonlinear_problem", "newmark_every_k")
+
+
+def load_loop(name):
+    if name not in LOOPS:
+        raise ValueError(f"unknown loop {name!r}; one of {LOOPS}")
+    return importlib.import_module(f"{__package__}.{name}")
+
+
+def record(loop, load, t_end, size, *, collect=False):
+    """Run the loop with a recorder on ``on_step``: (snapshots, recorder, info, collector)."""
+    held = {}
+    col = operators.Collector() if collect else None
+
+    def on_step(t, u, v, a, applied_load, applied_time):
+        if "rec" not in held:  # the user's three lines: make the recorder, record, snapshots()
+            V = u.function_space
+            E = lo.point_output_matrix(V, np.array(loop.OUTPUT["points"], dtype=float),
+                                       component=loop.OUTPUT.get("component"))
+            held["rec"] = lo.SnapshotRecorder(u, output_matrix=E)
+        held["rec"].record(t, u, inputs=[applied_load])
+        if col is not None:
+            col(t, u, v, a, applied_load, applied_time)
+
+    t0 = time.perf_counter()
+    info = loop.simulate(load, t_end, size=size, on_step=on_step)
+    info["wall_seconds"] = time.perf_counter() - t0
+    return held["rec"].snapshots(), held["rec"], info, col
+
+
+def verify(loop, size="quick", load=None, t_end=None, *, keep=False):
+    """The reference with the full basis I[:, free] (r = n) against the loop's own (u, v, a):
+    relative errors per field, and the sizes (``keep``: also the snapshots, the collected
+    arrays, the loop's info and the operators, for the tests)."""
+    load = loop.train_load if load is None else load
+    t_end = loop.SIZES[size]["t_train"] if t_end is None else t_end
+    snaps, rec, info, col = record(loop, load, t_end, size, collect=True)
+    ops = operators.fe_operators(loop, info["V"], rec.state_map)
+    X = col.arrays(rec.state_map)
+    free = ops["free"]
+    W = np.eye(len(free) + int(ops["fixed"].sum()))[:, free]
+    sch = info["scheme"]
+    t0 = time.perf_counter()
+    ref = reference.integrate(reference.galerkin(ops, W), sch, info["dt"], info["n_steps"],
+                              inputs=load, every=sch["record_every"])
+    out = {"n": int(W.shape[0]), "n_free": int(len(free)), "samples": len(X["times"]),
+           "reference_seconds": time.perf_counter() - t0, "fixed_max": float(np.abs(X["Q"][ops["fixed"]]).max()),
+           "times_error": float(np.abs(X["times"] - ref["times"]).max()),
+           "recorded_equals_collected": bool(np.array_equal(snaps.Q, X["Q"]))}
+    for key in ("Q", "V", "A"):
+        out[key] = None if X[key] is None else reference.rel_error(X[key][free], ref[key])
+    if keep:
+        out.update(snapshots=snaps, collected=X, info=info, ops=ops)
+    return out
+
+
+def _fit(train, r):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        t0 = time.perf_counter()
+        model = lo.fit(train, r)
+        seconds = time.perf_counter() - t0
+    return model, seconds, sorted({f"{w.category.__name__}: {str(w.message)[:160]}" for w in caught})
+
+
+def _intrusive(ops, W, info, load, n_fine):
+    sch = info["scheme"]
+    red = reference.galerkin(ops, W)
+    traj = reference.integrate(red, sch, info["dt"], n_fine, inputs=load, every=sch["record_every"])
+    return W @ traj["Q"]
+
+
+def leapfrog_energy(Q, M, K, dt):
+    """E_{k+1/2} = 1/2 d^T M d + 1/2 q_k^T K q_{k+1}, d = (q_{k+1} - q_k)/dt, per column pair."""
+    D = np.diff(Q, axis=1) / dt
+    return 0.5 * np.einsum("ik,ik->k", D, M @ D) + 0.5 * np.einsum("ik,ik->k", Q[:, :-1], K @ Q[:, 1:])
+
+
+def run_loop(name, size="default", rs=(2, 4, 8), save_to=None):
+    """Everything the table shows for one loop (a plain dict for metrics.json); with ``save_to``,
+    the recorded Snapshots are saved there too (``{name}_{train,test,free}.npz``, to re-fit
+    without running the loop: ``lo.Snapshots.load``)."""
+    loop = load_loop(name)
+    pre = loop.SIZES[size]
+    train, rec, info, _ = record(loop, loop.train_load, pre["t_train"], size)
+    test, _, info_test, _ = record(loop, loop.test_load, pre["t_test"], size)
+    V, sch = info["V"], info["scheme"]
+    ops = operators.fe_operators(loop, V, rec.state_map)
+    _, E_state = operators.output_matrix(loop, V, rec.state_map)
+    out = {"loop": name, "size": size, "n_dofs": int(train.n_states), "n_free": int(len(ops["free"])),
+           "dt": info["dt"], "record_dt": float(train.dt), "scheme": sch,
+           "steps_train": info["n_steps"], "steps_test": info_test["n_steps"],
+           "samples_train": len(train.times), "samples_test": len(test.times),
+           "fom_seconds_train": info["seconds"], "fom_seconds_test": info_test["seconds"],
+           "output_check": reference.rel_error(train.Y, E_state @ train.Q),
+           "max_abs_output_test": float(np.abs(test.Y).max()), "rows": []}
+    if save_to is not None:
+        train.save(Path(save_to) / f"{name}_train.npz")
+        test.save(Path(save_to) / f"{name}_test.npz")
+    n_test = len(test.times) - 1
+    free_run = None
+    if hasattr(loop, "free_load"):
+        free, _, info_free, _ = record(loop, loop.free_load, pre["t_free"], size)
+        if save_to is not None:
+            free.save(Path(save_to) / f"{name}_free.npz")
+        k_off = int(np.searchsorted(free.times, 0.5 + 1e-9))
+        M, K = ops["M"], ops["K"]
+        e_fom = leapfrog_energy(free.Q, M, K, free.dt)[k_off:]
+        free_run = {"t_free": pre["t_free"], "steps": info_free["n_steps"],
+                    "fom_energy_drift": float(np.max(np.abs(e_fom - e_fom[0])) / e_fom[0])}
+        out["free_run"] = free_run
+    for r in tuple(rs) + tuple(x for x in pre.get("extra_r", ()) if x not in rs):
+        row = {"r": r}
+        try:
+            model, fit_s, warns = _fit(train, r)
+            pred = model.predict(n_test, inputs=test.U)
+            Q_fit = model.reconstruct(pred.Qh)
+            row.update(lofit_output=reference.rel_error(test.Y, pred.Y),
+                       lofit_state=reference.rel_error(test.Q, Q_fit), fit_seconds=fit_s,
+                       rom_seconds=pred.seconds, chosen_scheme=model.scheme,
+                       chosen_mass=model.report.get("mass"), warnings=warns,
+                       candidate_errors=model.report.get("candidate_errors"))
+            W = model.basis.V
+        except Exception as exc:  # a "before" figure: record the failure, keep going
+            row.update(lofit_output=None, lofit_state=None, lofit_failure=f"{type(exc).__name__}: {exc}")
+            W = reference.pod_basis(train.Q, r)
+            model = None
+        t0 = time.perf_counter()
+        Q_int = _intrusive(ops, W, info, loop.test_load, info_test["n_steps"])
+        row.update(intrusive_output=reference.rel_error(test.Y, E_state @ Q_int),
+                   intrusive_state=reference.rel_error(test.Q, Q_int),
+                   intrusive_seconds=time.perf_counter() - t0,
+                   floor_state=reference.projection_floor(test.Q, W),
+                   floor_output=reference.rel_error(test.Y, E_state @ (W @ (W.T @ test.Q))))
+        if free_run is not None:
+            Q_int_free = _intrusive(ops, W, info_free, loop.free_load, info_free["n_steps"])
+            row["intrusive_free_energy_drift"] = _drift(Q_int_free, ops, free.dt, k_off)
+            row["intrusive_free_output"] = reference.rel_error(free.Y, E_state @ Q_int_free)
+            if model is not None:
+                pf = model.predict(len(free.times) - 1, inputs=free.U)
+                row["lofit_free_energy_drift"] = _drift(model.reconstruct(pf.Qh), ops, free.dt, k_off)
+                row["lofit_free_output"] = reference.rel_error(free.Y, pf.Y)
+        out["rows"].append(row)
+    return out
+
+
+def _drift(Q, ops, dt, k_off):
+    e = leapfrog_energy(Q, ops["M"], ops["K"], dt)[k_off:]
+    if not np.all(np.isfinite(e)) or e[0] == 0:
+        return float("inf")
+    return float(np.max(np.abs(e - e[0])) / abs(e[0]))
+
+
+def _fmt(x):
+    if x is None:
+        return "failed"
+    return f"{x:.2e}" if isinstance(x, float) else str(x)
+
+
+def table(result) -> str:
+    """The per-loop table: lo.fit defaults vs the intrusive ROM of the same scheme vs the floor."""
+    s = result["scheme"]
+    lines = [f"{result['loop']}: {result['n_dofs']} dofs ({result['n_free']} free), {s['name']} "
+             f"(alpha_m {s['alpha_m']:.3g}, alpha_f {s['alpha_f']:.3g}, beta {s['beta']:.4g}, "
+             f"gamma {s['gamma']:.3g}), dt {result['dt']:g}, recorded every {s['record_every']} "
+             f"(dt {result['record_dt']:g}), FOM {result['fom_seconds_train']:.2f} s train / "
+             f"{result['fom_seconds_test']:.2f} s test",
+             f"  {'r':>2}  {'lo.fit out':>10}  {'intrus out':>10}  {'floor out':>10}  {'lo.fit st':>10}  "
+             f"{'intrus st':>10}  {'floor st':>10}  {'chose':>16}  {'fit s':>6}"]
+    for x in result["rows"]:
+        chose = f"{x.get('chosen_mass', '-')}/{x.get('chosen_scheme', '-')}"
+        fit_s = f"{x['fit_seconds']:.1f}" if "fit_seconds" in x else "-"
+        lines.append(f"  {x['r']:>2}  {_fmt(x['lofit_output']):>10}  {_fmt(x['intrusive_output']):>10}  "
+                     f"{_fmt(x['floor_output']):>10}  {_fmt(x['lofit_state']):>10}  "
+                     f"{_fmt(x['intrusive_state']):>10}  {_fmt(x['floor_state']):>10}  {chose:>16}  {fit_s:>6}")
+    if "free_run" in result:
+        fr = result["free_run"]
+        lines.append(f"  free run to t = {fr['t_free']:g} ({fr['steps']} steps), energy drift after the "
+                     f"source: FOM {fr['fom_energy_drift']:.1e}; " + "; ".join(
+                         f"r = {x['r']}: lo.fit {_fmt(x.get('lofit_free_energy_drift'))}, intrusive "
+                         f"{_fmt(x['intrusive_free_energy_drift'])}" for x in result["rows"]))
+    return "\n".join(lines)
