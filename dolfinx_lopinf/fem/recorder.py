@@ -188,7 +188,7 @@ class SnapshotRecorder:
             problem = f"t must be a number, got {t!r}"
         arr, p = self._local(u, "u")
         problem = problem or p
-        vel = acc = None
+        vel = acc = tu = None
         if velocity is not None and "velocity" in self._fields:
             problem = problem or ("velocity was given to the recorder (SnapshotRecorder(u, "
                                   "velocity=v)) and to record(); give it once")
@@ -225,7 +225,7 @@ class SnapshotRecorder:
             self._velocities.append(vel[: self._n_owned].copy())
         if acc is not None:
             self._accelerations.append(acc[: self._n_owned].copy())
-        if inputs is not None:
+        if inputs is not None and tu is not None:
             self._inputs.append(inputs)
             self._input_times.append(tu)
         if y is not None:
@@ -263,8 +263,11 @@ class SnapshotRecorder:
             if not np.isfinite(tu):
                 return None, None, f"input_time must be finite, got {input_time!r}"
         if self._input_times and tu <= self._input_times[-1]:
+            if tu == self._input_times[-1] and np.array_equal(inputs, self._inputs[-1]):
+                return inputs, None, None  # the same load sample again (kept once)
             return None, None, (f"input times must increase: input_time = {tu!r} after "
-                                f"{self._input_times[-1]!r}")
+                                f"{self._input_times[-1]!r}"
+                                + (" with another value" if tu == self._input_times[-1] else ""))
         return inputs, tu, None
 
     def sink(self, *, every: int = 1, until_step: int | None = None, velocity: bool = False,
@@ -294,7 +297,7 @@ class SnapshotRecorder:
         U = np.column_stack(self._inputs) if self._inputs else None
         Y = np.column_stack(self._outputs) if self._outputs else None
         ti = np.array(self._input_times) if self._inputs else None
-        if ti is not None and np.array_equal(ti, np.array(self._times)):
+        if ti is not None and len(ti) == len(self._times) and np.array_equal(ti, self._times):
             ti = None  # the inputs act at the state times
         return Snapshots(times=np.array(self._times), Q=Q, blocks=self.state_map.blocks, V=Vel,
                          A=Acc, U=U, Y=Y, scheme=self.scheme, input_times=ti)

@@ -39,7 +39,15 @@ def load_loop(name):
     return importlib.import_module(f"{__package__}.{name}")
 
 
-def record(loop, load, t_end, size, *, collect=False):
+#: how the user attaches the recorder: ``"at_t"`` - the load value at the record time,
+#: ``rec.record(t, u, inputs=[load(t)])`` (what a user writes without thinking about the
+#: scheme); ``"applied"`` - the value the loop applied and when,
+#: ``rec.record(t, u, inputs=[p], input_time=t_applied)``; ``"uva"`` - as "applied", with the
+#: loop's velocity and acceleration Functions handed to the recorder (where it has them)
+STYLES = ("at_t", "applied", "uva")
+
+
+def record(loop, load, t_end, size, *, collect=False, style="applied"):
     """Run the loop with a recorder on ``on_step``: (snapshots, recorder, info, collector)."""
     held = {}
     col = operators.Collector() if collect else None
@@ -49,8 +57,12 @@ def record(loop, load, t_end, size, *, collect=False):
             V = u.function_space
             E = lo.point_output_matrix(V, np.array(loop.OUTPUT["points"], dtype=float),
                                        component=loop.OUTPUT.get("component"))
-            held["rec"] = lo.SnapshotRecorder(u, output_matrix=E)
-        held["rec"].record(t, u, inputs=[applied_load])
+            fields = {"velocity": v, "acceleration": a} if style == "uva" and a is not None else {}
+            held["rec"] = lo.SnapshotRecorder(u, output_matrix=E, **fields)
+        if style == "at_t":
+            held["rec"].record(t, u, inputs=[load(t)])
+        else:
+            held["rec"].record(t, u, inputs=[applied_load], input_time=applied_time)
         if col is not None:
             col(t, u, v, a, applied_load, applied_time)
 
@@ -58,6 +70,14 @@ def record(loop, load, t_end, size, *, collect=False):
     info = loop.simulate(load, t_end, size=size, on_step=on_step)
     info["wall_seconds"] = time.perf_counter() - t0
     return held["rec"].snapshots(), held["rec"], info, col
+
+
+def true_scheme(info):
+    """The loop's integrator as a dolfinx_lopinf.schemes object."""
+    s = info["scheme"]
+    if s["alpha_m"] == 0 and s["alpha_f"] == 0:
+        return lo.schemes.Newmark(s["beta"], s["gamma"])
+    return lo.schemes.GeneralizedAlpha(s["alpha_m"], s["alpha_f"], s["beta"], s["gamma"])
 
 
 def verify(loop, size="quick", load=None, t_end=None, *, keep=False):
@@ -86,13 +106,24 @@ def verify(loop, size="quick", load=None, t_end=None, *, keep=False):
     return out
 
 
-def _fit(train, r):
+def _fit(train, r, **kwargs):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         t0 = time.perf_counter()
-        model = lo.fit(train, r)
+        model = lo.fit(train, r, **kwargs)
         seconds = time.perf_counter() - t0
     return model, seconds, sorted({f"{w.category.__name__}: {str(w.message)[:160]}" for w in caught})
+
+
+def _scored(model, seconds, warns, test, n_test, load):
+    """A fitted model's row entries on the unseen load (predicted from rest with the load as a
+    callable: the ROM evaluates it where its scheme does)."""
+    pred = model.predict(n_test, inputs=load)
+    return {"output": reference.rel_error(test.Y, pred.Y),
+            "state": reference.rel_error(test.Q, model.reconstruct(pred.Qh)),
+            "fit_seconds": seconds, "rom_seconds": pred.seconds, "scheme": model.scheme.spec,
+            "mass": model.report.get("mass"), "damping": model.report.get("damping"),
+            "identification": model.report["identification"].get("why", ""), "warnings": warns}
 
 
 def _intrusive(ops, W, info, load, n_fine):
@@ -108,55 +139,61 @@ def leapfrog_energy(Q, M, K, dt):
     return 0.5 * np.einsum("ik,ik->k", D, M @ D) + 0.5 * np.einsum("ik,ik->k", Q[:, :-1], K @ Q[:, 1:])
 
 
-def run_loop(name, size="default", rs=(2, 4, 8), save_to=None):
+def run_loop(name, size="default", rs=(2, 4, 8), save_to=None, peer=True):
     """Everything the table shows for one loop (a plain dict for metrics.json); with ``save_to``,
-    the recorded Snapshots are saved there too (``{name}_{train,test,free}.npz``, to re-fit
-    without running the loop: ``lo.Snapshots.load``)."""
+    the recorded Snapshots are saved there too (``{name}_{style}_{train,test}.npz``, to re-fit
+    without running the loop: ``lo.Snapshots.load``).
+
+    Rows per r (unseen test load, predicted from rest): ``lo.fit`` defaults on each recording
+    style (:data:`STYLES`), ``lo.fit(scheme=<the loop's scheme>)`` on the "applied" recording,
+    the intrusive ROM of the loop's scheme and the projection floor in the defaults' basis,
+    and opinf's first-order model (the peer) where installed."""
     loop = load_loop(name)
     pre = loop.SIZES[size]
-    train, rec, info, _ = record(loop, loop.train_load, pre["t_train"], size)
-    test, _, info_test, _ = record(loop, loop.test_load, pre["t_test"], size)
+    data = {}
+    for style in STYLES:
+        train, rec, info, _ = record(loop, loop.train_load, pre["t_train"], size, style=style)
+        if style == "uva" and train.A is None:
+            continue  # the loop keeps no acceleration
+        test, _, info_test, _ = record(loop, loop.test_load, pre["t_test"], size, style=style)
+        data[style] = (train, test)
+        if save_to is not None:
+            train.save(Path(save_to) / f"{name}_{style}_train.npz")
+            test.save(Path(save_to) / f"{name}_{style}_test.npz")
+    train, test = data["applied"]
     V, sch = info["V"], info["scheme"]
     ops = operators.fe_operators(loop, V, rec.state_map)
     _, E_state = operators.output_matrix(loop, V, rec.state_map)
+    truth = true_scheme(info)
     out = {"loop": name, "size": size, "n_dofs": int(train.n_states), "n_free": int(len(ops["free"])),
-           "dt": info["dt"], "record_dt": float(train.dt), "scheme": sch,
+           "dt": info["dt"], "record_dt": float(train.dt), "scheme": sch, "true_scheme": truth.spec,
            "steps_train": info["n_steps"], "steps_test": info_test["n_steps"],
            "samples_train": len(train.times), "samples_test": len(test.times),
            "fom_seconds_train": info["seconds"], "fom_seconds_test": info_test["seconds"],
            "output_check": reference.rel_error(train.Y, E_state @ train.Q),
-           "max_abs_output_test": float(np.abs(test.Y).max()), "rows": []}
-    if save_to is not None:
-        train.save(Path(save_to) / f"{name}_train.npz")
-        test.save(Path(save_to) / f"{name}_test.npz")
+           "max_abs_output_test": float(np.abs(test.Y).max()), "styles": list(data), "rows": []}
     n_test = len(test.times) - 1
     free_run = None
     if hasattr(loop, "free_load"):
         free, _, info_free, _ = record(loop, loop.free_load, pre["t_free"], size)
-        if save_to is not None:
-            free.save(Path(save_to) / f"{name}_free.npz")
         k_off = int(np.searchsorted(free.times, 0.5 + 1e-9))
-        M, K = ops["M"], ops["K"]
-        e_fom = leapfrog_energy(free.Q, M, K, free.dt)[k_off:]
+        e_fom = leapfrog_energy(free.Q, ops["M"], ops["K"], free.dt)[k_off:]
         free_run = {"t_free": pre["t_free"], "steps": info_free["n_steps"],
                     "fom_energy_drift": float(np.max(np.abs(e_fom - e_fom[0])) / e_fom[0])}
         out["free_run"] = free_run
+    peers = _peers(train, test, rs, E_state, loop) if peer else {}
     for r in tuple(rs) + tuple(x for x in pre.get("extra_r", ()) if x not in rs):
-        row = {"r": r}
-        try:
-            model, fit_s, warns = _fit(train, r)
-            pred = model.predict(n_test, inputs=test.U)
-            Q_fit = model.reconstruct(pred.Qh)
-            row.update(lofit_output=reference.rel_error(test.Y, pred.Y),
-                       lofit_state=reference.rel_error(test.Q, Q_fit), fit_seconds=fit_s,
-                       rom_seconds=pred.seconds, chosen_scheme=model.scheme,
-                       chosen_mass=model.report.get("mass"), warnings=warns,
-                       candidate_errors=model.report.get("candidate_errors"))
-            W = model.basis.V
-        except Exception as exc:  # a "before" figure: record the failure, keep going
-            row.update(lofit_output=None, lofit_state=None, lofit_failure=f"{type(exc).__name__}: {exc}")
-            W = reference.pod_basis(train.Q, r)
-            model = None
+        row = {"r": r, "fits": {}}
+        for key, style, kwargs in [(st, st, {}) for st in data] + [("named", "applied", {"scheme": truth})]:
+            try:
+                model, fit_s, warns = _fit(data[style][0], r, **kwargs)
+                row["fits"][key] = _scored(model, fit_s, warns, data[style][1], n_test, loop.test_load)
+                if key == "applied":
+                    W, default_model = model.basis.V, model
+            except Exception as exc:  # record the failure, keep going
+                row["fits"][key] = {"failure": f"{type(exc).__name__}: {exc}"[:300]}
+        if "applied" not in row["fits"] or "failure" in row["fits"]["applied"]:
+            W, default_model = reference.pod_basis(train.Q, r), None
         t0 = time.perf_counter()
         Q_int = _intrusive(ops, W, info, loop.test_load, info_test["n_steps"])
         row.update(intrusive_output=reference.rel_error(test.Y, E_state @ Q_int),
@@ -164,15 +201,38 @@ def run_loop(name, size="default", rs=(2, 4, 8), save_to=None):
                    intrusive_seconds=time.perf_counter() - t0,
                    floor_state=reference.projection_floor(test.Q, W),
                    floor_output=reference.rel_error(test.Y, E_state @ (W @ (W.T @ test.Q))))
+        if r in peers:
+            row["opinf_output"] = peers[r]
         if free_run is not None:
             Q_int_free = _intrusive(ops, W, info_free, loop.free_load, info_free["n_steps"])
             row["intrusive_free_energy_drift"] = _drift(Q_int_free, ops, free.dt, k_off)
-            row["intrusive_free_output"] = reference.rel_error(free.Y, E_state @ Q_int_free)
-            if model is not None:
-                pf = model.predict(len(free.times) - 1, inputs=free.U)
-                row["lofit_free_energy_drift"] = _drift(model.reconstruct(pf.Qh), ops, free.dt, k_off)
+            if default_model is not None:
+                pf = default_model.predict(len(free.times) - 1, inputs=loop.free_load)
+                row["lofit_free_energy_drift"] = _drift(default_model.reconstruct(pf.Qh), ops,
+                                                        free.dt, k_off)
                 row["lofit_free_output"] = reference.rel_error(free.Y, pf.Y)
         out["rows"].append(row)
+    return out
+
+
+def _peers(train, test, rs, E_state, loop):
+    """opinf's first-order model (studies.peers) per r: unseen-load output error, or {}."""
+    from .. import peers
+
+    if not peers.have_opinf():
+        return {}
+    out = {}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            models = peers.opinf_first_order(train.Q, train.times, list(rs), inputs=loop.train_load,
+                                             output_matrix=E_state)
+        for r, peer in zip(rs, models):
+            pred = peer.predict(test.Q[:, 0], np.zeros(test.n_states), test.times, loop.test_load,
+                                full=False)
+            out[r] = reference.rel_error(test.Y, pred.Y) if pred.finite else float("inf")
+    except Exception as exc:  # the peer is a comparison: its failure is a result
+        return {r: f"failed: {type(exc).__name__}: {str(exc)[:120]}" for r in rs}
     return out
 
 
@@ -190,21 +250,24 @@ def _fmt(x):
 
 
 def table(result) -> str:
-    """The per-loop table: lo.fit defaults vs the intrusive ROM of the same scheme vs the floor."""
+    """The per-loop table: lo.fit (defaults on each recording style, the named scheme) vs the
+    intrusive ROM of the same scheme vs the projection floor vs opinf; output errors."""
     s = result["scheme"]
-    lines = [f"{result['loop']}: {result['n_dofs']} dofs ({result['n_free']} free), {s['name']} "
-             f"(alpha_m {s['alpha_m']:.3g}, alpha_f {s['alpha_f']:.3g}, beta {s['beta']:.4g}, "
-             f"gamma {s['gamma']:.3g}), dt {result['dt']:g}, recorded every {s['record_every']} "
-             f"(dt {result['record_dt']:g}), FOM {result['fom_seconds_train']:.2f} s train / "
+    lines = [f"{result['loop']}: {result['n_dofs']} dofs ({result['n_free']} free), {result['true_scheme']}"
+             f", dt {result['dt']:g}, recorded every {s['record_every']} (dt {result['record_dt']:g}), "
+             f"{result['samples_train']} training samples, FOM {result['fom_seconds_train']:.2f} s train / "
              f"{result['fom_seconds_test']:.2f} s test",
-             f"  {'r':>2}  {'lo.fit out':>10}  {'intrus out':>10}  {'floor out':>10}  {'lo.fit st':>10}  "
-             f"{'intrus st':>10}  {'floor st':>10}  {'chose':>16}  {'fit s':>6}"]
+             f"  {'r':>2}  " + "  ".join(f"{k:>10}" for k in result["styles"] + ["named"])
+             + f"  {'intrusive':>10}  {'floor':>10}  {'opinf':>10}  fit s (applied)  chose (applied)"]
     for x in result["rows"]:
-        chose = f"{x.get('chosen_mass', '-')}/{x.get('chosen_scheme', '-')}"
-        fit_s = f"{x['fit_seconds']:.1f}" if "fit_seconds" in x else "-"
-        lines.append(f"  {x['r']:>2}  {_fmt(x['lofit_output']):>10}  {_fmt(x['intrusive_output']):>10}  "
-                     f"{_fmt(x['floor_output']):>10}  {_fmt(x['lofit_state']):>10}  "
-                     f"{_fmt(x['intrusive_state']):>10}  {_fmt(x['floor_state']):>10}  {chose:>16}  {fit_s:>6}")
+        cells = [_fmt(x["fits"].get(k, {}).get("output")) for k in result["styles"] + ["named"]]
+        ap = x["fits"].get("applied", {})
+        op = x.get("opinf_output")
+        lines.append(f"  {x['r']:>2}  " + "  ".join(f"{c:>10}" for c in cells)
+                     + f"  {_fmt(x['intrusive_output']):>10}  {_fmt(x['floor_output']):>10}  "
+                     f"{_fmt(op) if not isinstance(op, str) else 'failed':>10}  "
+                     f"{_fmt(ap.get('fit_seconds')):>14}  {ap.get('mass', '-')}/"
+                     f"{'damped' if ap.get('damping') else 'undamped'}/{ap.get('scheme', '-')}")
     if "free_run" in result:
         fr = result["free_run"]
         lines.append(f"  free run to t = {fr['t_free']:g} ({fr['steps']} steps), energy drift after the "
