@@ -161,7 +161,7 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
         if size > rank:
             raise InputError(
                 f"block {name!r}: asked for {size} basis vectors but the snapshots have "
-                f"numerical rank {rank} (singular values {s[: size + 1]}); lower r or record "
+                f"numerical rank {rank} (singular values {_few(s[: rank + 2])}); lower r or record "
                 "richer data"
             )
         V[rows, start : start + size] = U[:, :size]
@@ -171,6 +171,15 @@ def pod(Q: np.ndarray, r: int, blocks: dict | None = None, rank_rtol: float = 1e
     return Basis(V, singular_values, out_blocks)
 
 
+def _few(s, k: int = 6) -> str:
+    """At most k singular values around the rank, as text (not hundreds of them)."""
+    s = np.asarray(s)
+    if len(s) <= k:
+        return np.array2string(s, precision=3)
+    return (np.array2string(s[:2], precision=3)[:-1] + " ... "
+            + np.array2string(s[-(k - 2):], precision=3)[1:])
+
+
 def from_svd(U, s, r: int, rank_rtol: float = 1e-12) -> Basis:
     """The POD basis of r vectors from a thin SVD Q = U diag(s) W^T already computed (so a
     caller that needs more modes, e.g. to identify the time integrator, pays one SVD)."""
@@ -178,7 +187,7 @@ def from_svd(U, s, r: int, rank_rtol: float = 1e-12) -> Basis:
     if r > rank:
         raise InputError(
             f"block 'all': asked for {r} basis vectors but the snapshots have numerical rank "
-            f"{rank} (singular values {s[: r + 1]}); lower r or record richer data")
+            f"{rank} (singular values {_few(s[: rank + 2])}); lower r or record richer data")
     return Basis(U[:, :r].copy(), {"all": s}, {"all": (np.arange(U.shape[0]), np.arange(r))})
 
 

@@ -41,7 +41,7 @@ from . import compiled, schemes
 from .holdout import prediction_error, split
 from .basis import Basis, from_svd, pod
 from ._checks import as_real_array
-from ..errors import InputError, SchemeMismatchWarning, warn
+from ..errors import FileFormatError, InputError, SchemeMismatchWarning, warn
 from .identify import Residual, identify, standard_members
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
@@ -149,13 +149,28 @@ class ReducedModel:
 
     @classmethod
     def load(cls, path) -> "ReducedModel":
+        """Read a file written by :meth:`save` (numpy only). Raises
+        :class:`~dolfinx_lopinf.errors.FileFormatError` naming the file and the entry when it is
+        not such a file (a bare ROM, an unknown scheme, a non-finite basis, a bad time step)."""
         rom, extras = load_rom(path)
-        if "basis_rows" not in extras or "fit_scheme" not in rom.meta:
-            raise InputError(f"{path} holds a ROM without the basis and scheme of lo.fit; load it "
-                             "with lo.load_rom")
-        basis = Basis(extras["basis_rows"], {}, {})
-        return cls(rom, basis, schemes.from_spec(rom.meta["fit_scheme"]),
-                   float(rom.meta["fit_dt"]), rom.meta.get("fit_report", {}))
+        missing = [k for k in ("fit_scheme", "fit_dt") if k not in rom.meta]
+        if "basis_rows" not in extras or missing:
+            raise FileFormatError(f"{path}: a ROM without the basis, scheme and time step of lo.fit "
+                                  f"(missing: {['basis_rows'] * ('basis_rows' not in extras) + missing}); "
+                                  "load it with lo.load_rom")
+        try:
+            scheme = schemes.from_spec(rom.meta["fit_scheme"])
+        except InputError as exc:
+            raise FileFormatError(f"{path}: entry fit_scheme: {exc}") from None
+        V = extras["basis_rows"]
+        if V.ndim != 2 or V.shape[1] != rom.r or not np.all(np.isfinite(V)):
+            raise FileFormatError(f"{path}: the stored basis must be a finite (n, {rom.r}) array, "
+                                  f"got shape {V.shape}" + ("" if np.all(np.isfinite(V))
+                                                            else " with NaN or inf"))
+        dt = rom.meta["fit_dt"]
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (np.isfinite(dt) and dt > 0):
+            raise FileFormatError(f"{path}: entry fit_dt must be a positive number, got {dt!r}")
+        return cls(rom, Basis(V, {}, {}), scheme, float(dt), rom.meta.get("fit_report", {}))
 
 
 def _whole_steps(t_end, dt) -> int:

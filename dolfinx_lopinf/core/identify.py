@@ -320,6 +320,12 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
               "refined": {c.spec: v for _, c, v, _ in refined}}
     chosen, why = _by_residual(members, rho, refined, report)
     predictions = _predictions(pieces, members, rho, best_rho, refined, holdout)
+    if predictions and not np.isfinite(predictions.get(chosen, np.inf)):
+        # the free fit of the residual's choice does not even predict: the data leave the
+        # free operators undetermined (e.g. repeated frequencies), so prediction cannot judge
+        report["predictions"] = {c.spec: e for c, e in predictions.items()}
+        why += "; the free operators' predictions are not informative (the residual's choice blows up)"
+        predictions = {}
     if predictions:
         report["predictions"] = {c.spec: e for c, e in predictions.items()}
         chosen, why = _by_prediction(members, refined, predictions, report) or (chosen, why)

@@ -185,8 +185,9 @@ def open_npz(path, what: str):
 
 def plain(obj):
     """``obj`` with numpy values made plain Python (dict keys as str, arrays and tuples as lists,
-    numpy scalars as bool/int/float), ready for ``json.dumps``. Non-finite floats stay floats
-    (``json`` writes them as NaN/Infinity, which Python reads back)."""
+    numpy scalars as bool/int/float, a time-integration scheme as its spec text), ready for
+    ``json.dumps``. Non-finite floats stay floats (``json`` writes them as NaN/Infinity,
+    which Python reads back)."""
     if isinstance(obj, dict):
         return {str(k): plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -195,4 +196,7 @@ def plain(obj):
         return plain(obj.tolist())
     if isinstance(obj, np.generic):
         return obj.item()
+    spec = getattr(obj, "spec", None)  # a dolfinx_lopinf.core.schemes.Scheme
+    if isinstance(spec, str):
+        return spec
     return obj

@@ -41,7 +41,8 @@ class Snapshots:
     """Time samples of a full-order trajectory.
 
     Attributes:
-        times: (K,) uniformly spaced sample times.
+        times: (K,) uniformly spaced sample times (times of a lower precision than float64
+            are stored as the float64 grid t_0 + k dt they round).
         Q: (n, K) states; column k is the state at ``times[k]``.
         blocks: name -> row indices of Q for physically different parts of the state.
         V: (n, K) velocities, or None.
@@ -74,8 +75,17 @@ class Snapshots:
     def __post_init__(self):
         object.__setattr__(self, "scheme", check_scheme(self.scheme))
         dt = check_uniform_times(self.times)
+        raw = np.asarray(self.times)
         times = as_real_array(self.times, "times")
+        eps = np.finfo(raw.dtype).eps if raw.dtype.kind == "f" else np.finfo(float).eps
+        if raw.dtype.kind == "f" and raw.dtype.itemsize < 8:
+            # float32 (or coarser) times are a uniform grid rounded to their precision: keep
+            # the grid itself, so every later check sees float64 times of that grid
+            times = times[0] + dt * np.arange(len(times))
         object.__setattr__(self, "times", times)
+        # how finely the caller's times are known (times given later, e.g. a window's
+        # bounds, are compared to this rounding too)
+        object.__setattr__(self, "_rounding", 2.0 * float(eps) * float(np.max(np.abs(times))))
         object.__setattr__(self, "_dt", dt)
         K = len(times)
         object.__setattr__(self, "Q", check_matrix(self.Q, "Q", cols=K))
@@ -149,7 +159,8 @@ class Snapshots:
                 bad = True
             if bad:
                 raise InputError(f"{name} must be a real number (inf allowed), got {value!r}")
-        tol = 1e-9 * self.dt + 2 * np.finfo(float).eps * np.max(np.abs(self.times))
+        tol = max(1e-9 * self.dt + 2 * np.finfo(float).eps * np.max(np.abs(self.times)),
+                  getattr(self, "_rounding", 0.0))
         keep = (self.times >= t_start - tol) & (self.times <= t_stop + tol)
         if keep.sum() < 2:
             raise InputError(f"window [{t_start}, {t_stop}] holds fewer than 2 samples")

@@ -147,3 +147,31 @@ def test_inputs_are_interpolated_to_the_schemes_times():
     np.testing.assert_allclose(S.sample_inputs(U, ti, [0.0, 0.05, 0.1, 0.16]), [[0, 0.5, 1, 2.8]])
     with pytest.raises(InputError, match="recorded over"):
         S.sample_inputs(U, ti, [0.25])
+
+
+def test_undamped_data_give_a_conservative_energy_conserving_rom():
+    """Undamped average-acceleration data: damping="auto" keeps the conservative model, and its
+    ROM conserves the reduced energy to rounding over a free run 10x the training window."""
+    M, C, K, B = _system(6, m=1)
+    dt, n = 0.01, 400
+    load = (lambda t: np.array([np.sin(4 * t) * (t < 2.0)]))
+    Q = _reference_run(S.Newmark(), M, 0 * C, K, B, dt, n, np.ones(4), np.zeros(4), load)
+    t = dt * np.arange(n + 1)
+    snaps = lo.Snapshots(t, Q, U=np.array([load(s) for s in t]).T)
+    model = lo.fit(snaps, 4, basis=lo.Basis(np.eye(4), {}, {}), mass="identity")
+    assert model.report["damping"] is False and model.rom.C is None, model.report["why"]
+    assert model.scheme == "newmark"
+    free = model.predict(10 * n, q0=Q[:, -1], v0=np.ones(4))  # inputs=None: the free response
+    e = model.rom.energy(free.Qh, free.Vh)
+    assert np.ptp(e) <= 1e-12 * e[0]
+
+
+def test_a_forced_model_predicts_its_free_response_without_inputs():
+    M, C, K, B = _system(7, m=1)
+    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
+    free = rom.simulate(np.ones(4), np.zeros(4), 0.01, 50)
+    zero = rom.simulate(np.ones(4), np.zeros(4), 0.01, 50, inputs=lambda t: np.zeros(1))
+    np.testing.assert_array_equal(free.Qh, zero.Qh)
+    with pytest.raises(InputError, match="unforced"):
+        lo.LagrangianROM(K=K, scheme="newmark").simulate(np.ones(4), np.zeros(4), 0.01, 5,
+                                                        inputs=lambda t: np.ones(1))

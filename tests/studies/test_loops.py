@@ -68,13 +68,18 @@ def test_recorded_snapshots(verified):
     assert k == (5 if loop.NAME == "newmark_every_k" else 1)
     n_samples = info["n_steps"] // k + 1
     assert snaps.Q.shape == (v["n"], n_samples)
-    assert snaps.U.shape == (1, n_samples) and snaps.Y.shape == (1, n_samples)
+    # one input per distinct load time (central differences evaluate f(t_0) for the state at
+    # t_0 and again in the first step: recorded once)
+    n_loads = len(np.unique(X["load_times"]))
+    assert snaps.U.shape == (1, n_loads) and snaps.Y.shape == (1, n_samples)
     np.testing.assert_allclose(snaps.times, k * dt * np.arange(n_samples), rtol=0, atol=1e-12)
     # the inputs are the load values at the times the loop evaluated them
     t = snaps.times[1:]
     expected = t - (dt if sch["beta"] == 0.0 else sch["alpha_f"] * dt)  # explicit: the load at t_n
     np.testing.assert_allclose(X["load_times"][1:], expected, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(snaps.U[0], [loop.train_load(s) for s in X["load_times"]], rtol=0, atol=1e-14)
+    times_u = snaps.times if snaps.input_times is None else snaps.input_times
+    np.testing.assert_allclose(times_u, np.unique(X["load_times"]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(snaps.U[0], [loop.train_load(s) for s in times_u], rtol=0, atol=1e-14)
     assert np.abs(snaps.Q).max() > 0 and np.all(np.isfinite(snaps.Y))
 
 
@@ -132,8 +137,11 @@ def test_study_end_to_end(tmp_path):
         assert res["output_check"] < 1e-12  # the recorder's outputs = the study's E_state @ Q
         assert [x["r"] for x in res["rows"]] == [2, 4]
         for x in res["rows"]:
-            for key in ("lofit_output", "intrusive_output", "floor_state", "intrusive_state"):
+            for key in ("intrusive_output", "floor_state", "intrusive_state"):
                 assert np.isfinite(x[key]) and x[key] >= 0, (name, key)
+            for style in res["styles"] + ["named"]:
+                fit = x["fits"][style]
+                assert "failure" not in fit and np.isfinite(fit["output"]), (name, style, fit)
             # the intrusive ROM cannot beat the projection floor of its own basis
             assert x["intrusive_state"] >= x["floor_state"] * (1 - 1e-9)
     free = on_disk["loops"]["membrane_central_difference"]
