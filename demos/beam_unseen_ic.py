@@ -104,7 +104,7 @@ def _fit_and_score(train, tests, basis, galerkin, dt):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", lo.errors.LOpInfWarning)  # rank warnings at large r
             model = lo.fit(train, basis.r, basis=basis, scheme=scheme, damping=False, mass=mass)
-        models[method] = (model.rom, time.perf_counter() - t0, model.scheme)
+        models[method] = (model.rom, time.perf_counter() - t0, model.scheme.spec)
     models["intrusive"] = (galerkin, 0.0, "-")
     def run(rom, trajs):
         recon, seconds = [], 0.0
