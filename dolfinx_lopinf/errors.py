@@ -40,7 +40,12 @@ class FileFormatError(LOpInfError, OSError):
 class StepFailedError(LOpInfError, RuntimeError):
     """A time step failed: a reduced Newton iteration (numpy or compiled ROM loop) or the
     FOM's nonlinear solve (PETSc SNES) did not converge. The message names the step and time;
-    a smaller dt or a lower amplitude is the usual remedy."""
+    a smaller dt or a lower amplitude is the usual remedy. ``step`` is the failed step (or
+    None)."""
+
+    def __init__(self, message, step=None):
+        super().__init__(message)
+        self.step = step
 
 
 class SolverFailedError(LOpInfError, RuntimeError):

@@ -58,6 +58,11 @@ _LAZY_THETA = 0.1
 _STRUCTURE_RTOL = 1e-8
 
 
+def _check_on_failure(on_failure):
+    if on_failure not in ("raise", "stop"):
+        raise InputError(f"on_failure must be 'raise' or 'stop', got {on_failure!r}")
+
+
 def _initial_state(q0, v0, r):
     q0, v0 = (as_real_array(a, name).reshape(-1) for a, name in ((q0, "q0"), (v0, "v0")))
     if q0.shape != (r,) or v0.shape != (r,):
@@ -111,10 +116,19 @@ def _affine_loop(G, x, forcing, n_steps: int, every: int, X, backend: str) -> No
 
 @dataclass(frozen=True)
 class Trajectory:
-    """A ROM trajectory: times (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None;
-    ``seconds`` of integration, the ``backend`` that ran it (``"numpy"`` or ``"numba"``),
-    ``info`` (the wave ROM's Newton counts: ``newton_iterations``, ``jacobians``) and Ah
-    (r, K), the scheme's accelerations where it has them (Newmark / generalised-alpha)."""
+    """A ROM trajectory - the one result type of every reduced model's ``simulate``: times
+    (K,), Qh (r, K), Vh (r, K) velocities, Y (p, K) or None; ``seconds`` of integration, the
+    ``backend`` that ran it (``"numpy"`` or ``"numba"``), ``info`` (Newton counts of the
+    nonlinear ROMs: ``newton_iterations``, ``jacobians``; ``failure``: why and where a run
+    stopped with ``on_failure="stop"``) and Ah (r, K), the scheme's accelerations where it has
+    them (Newmark / generalised-alpha). ``stable``: every state finite.
+
+    The contract shared by :class:`LagrangianROM`, :class:`WaveROM` and
+    :class:`~dolfinx_lopinf.core.polynomial.PolynomialROM`:
+    ``simulate(q0, v0, dt, n_steps, *, inputs=None, every=1, backend="auto",
+    on_failure=...)``: a step that cannot be taken raises
+    :class:`~dolfinx_lopinf.errors.StepFailedError` (``"raise"``) or ends the run, the states
+    after it NaN (``"stop"``)."""
 
     times: np.ndarray
     Qh: np.ndarray
@@ -124,6 +138,11 @@ class Trajectory:
     backend: str = "numpy"
     info: dict = field(default_factory=dict)
     Ah: np.ndarray | None = None
+
+    @property
+    def stable(self) -> bool:
+        """Whether every state is finite (a failed or blown-up run is not)."""
+        return bool(np.all(np.isfinite(self.Qh)))
 
 
 @dataclass(frozen=True)
@@ -221,7 +240,7 @@ class LagrangianROM:
         return self.scheme.step(self.mass, self.C, self.K, self.B, dt)
 
     def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1,
-                 backend: str = "auto") -> Trajectory:
+                 backend: str = "auto", on_failure: str = "raise") -> Trajectory:
         """Integrate with the ROM's scheme (:attr:`scheme`) from (q0, v0).
 
         Args:
@@ -237,11 +256,15 @@ class LagrangianROM:
                 :mod:`dolfinx_lopinf.core.compiled`: the same step and forcing, equal to
                 rounding) or ``"auto"`` (numba when installed and not disabled by
                 ``DOLFINX_LOPINF_JIT=0``). Compilation happens before the timer starts.
+            on_failure: the shared contract's option (:class:`Trajectory`); a linear step
+                cannot fail - a model that blows up returns non-finite states
+                (``trajectory.stable`` is False).
 
         Returns:
             :class:`Trajectory` at t = 0, every*dt, ...: positions Qh, velocities Vh and, for
             the Newmark / generalised-alpha family, the scheme's accelerations Ah.
         """
+        _check_on_failure(on_failure)
         r = self.r
         q0, v0 = _initial_state(q0, v0, r)
         n_steps = check_int(n_steps, "n_steps", 0)
@@ -485,8 +508,9 @@ class WaveROM:
         pot = self._w() @ self.U(self.V @ Qh)
         return 0.5 * np.sum(Vh**2, axis=0) - 0.5 * np.einsum("ik,ij,jk->k", Qh, self.K, Qh) + pot
 
-    def simulate(self, q0, v0, dt: float, n_steps: int, *, every: int = 1, tol: float = 1e-12,
-                 max_newton: int = 20, jacobian: str = "fresh", backend: str = "auto") -> Trajectory:
+    def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1,
+                 backend: str = "auto", on_failure: str = "raise", tol: float = 1e-12,
+                 max_newton: int = 20, jacobian: str = "fresh") -> Trajectory:
         """Midpoint variational integrator in position-momentum form (p = qh_t):
 
             R(q1) = p0 - (q1 - q0)/dt + dt/2 (Kh m - F(m)) = 0,  m = (q0 + q1)/2
@@ -506,8 +530,14 @@ class WaveROM:
                 nonlinearity, also as compiled from UFL by ``nonlinear.identify``) or
                 ``"auto"`` (numba when installed, enabled and g is sin, else numpy).
 
-        Raises ``RuntimeError`` naming the step if Newton does not converge.
+            inputs: must be None (this model has no forcing; the shared contract's argument).
+            on_failure: ``"raise"`` (default): :class:`~dolfinx_lopinf.errors.StepFailedError`
+                naming the step if Newton does not converge; ``"stop"``: the trajectory up to
+                the failed step, NaN after it, ``info["failure"]`` saying where.
         """
+        _check_on_failure(on_failure)
+        if inputs is not None:
+            raise InputError("this wave ROM has no input operator; do not pass inputs")
         q, p = (a.copy() for a in _initial_state(q0, v0, self.r))
         dt = check_positive(dt, "dt")
         n_steps = check_int(n_steps, "n_steps", 0)
@@ -522,7 +552,15 @@ class WaveROM:
         Q, P = np.empty((self.r, n_out)), np.empty((self.r, n_out))
         Q[:, 0], P[:, 0] = q, p
         loop = self._run_compiled if backend == "numba" else self._run_numpy
-        info = loop(q, p, dt, n_steps, every, tol, max_newton, jacobian == "lazy", Q, P)
+        try:
+            info = loop(q, p, dt, n_steps, every, tol, max_newton, jacobian == "lazy", Q, P)
+        except StepFailedError as exc:
+            if on_failure == "raise" or exc.step is None:
+                raise
+            first = (exc.step - 1) // every + 1  # the first stored column not reached
+            Q[:, first:] = np.nan
+            P[:, first:] = np.nan
+            info = {"failure": str(exc)}
         return Trajectory(dt * every * np.arange(n_out), Q, P, None, time.perf_counter() - t0,
                           backend, info)
 
@@ -550,7 +588,7 @@ class WaveROM:
         if stats[0] > 0:
             k = int(stats[0])
             raise StepFailedError(f"reduced Newton did not converge at step {k} "
-                                  f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}; try a smaller dt")
+                                  f"(t = {k * dt:.6g}): |R| = {rnorm:.3e}; try a smaller dt", step=k)
         if stats[0] < 0:
             raise np.linalg.LinAlgError(f"Singular matrix (the Newton Jacobian at step "
                                         f"{-int(stats[0])})")
@@ -588,7 +626,7 @@ class WaveROM:
             else:
                 raise StepFailedError(f"reduced Newton did not converge at step {k + 1} "
                                       f"(t = {(k + 1) * dt:.6g}): |R| = {np.linalg.norm(R):.3e}; "
-                                      "try a smaller dt")
+                                      "try a smaller dt", step=k + 1)
             m = 0.5 * (q + q1)
             p = (q1 - q) / dt + 0.5 * dt * (K @ m - V.T @ (w * self.g(V @ m)))
             q = q1

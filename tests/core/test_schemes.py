@@ -175,3 +175,25 @@ def test_a_forced_model_predicts_its_free_response_without_inputs():
     with pytest.raises(InputError, match="unforced"):
         lo.LagrangianROM(K=K, scheme="newmark").simulate(np.ones(4), np.zeros(4), 0.01, 5,
                                                         inputs=lambda t: np.ones(1))
+
+
+def test_one_simulate_contract_for_linear_and_wave_roms():
+    """The same call and result for both ROMs; a failing Newton step raises by default and
+    ends the run with NaN after it with on_failure="stop"."""
+    K = -np.diag([1.0, 4.0])
+    V = np.eye(2)
+    wave = lo.WaveROM(K=K, V=V, g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z))
+    lin = lo.LagrangianROM(K=-K, scheme="newmark")
+    for rom in (wave, lin):
+        tr = rom.simulate(np.array([0.1, 0.0]), np.zeros(2), 0.01, 20, inputs=None, every=2,
+                          backend="numpy", on_failure="raise")
+        assert isinstance(tr, lo.Trajectory) and tr.Qh.shape == (2, 11) and tr.stable
+    with pytest.raises(InputError, match="no input operator"):
+        wave.simulate(np.zeros(2), np.zeros(2), 0.01, 5, inputs=lambda t: np.ones(1))
+    with pytest.raises(InputError, match="on_failure"):
+        lin.simulate(np.zeros(2), np.zeros(2), 0.01, 5, on_failure="ignore")
+    big = np.array([50.0, 0.0])  # Newton cannot converge in 1 iteration from this state
+    with pytest.raises(lo.errors.StepFailedError, match="step 1 "):
+        wave.simulate(big, np.zeros(2), 1.0, 10, max_newton=1, backend="numpy")
+    tr = wave.simulate(big, np.zeros(2), 1.0, 10, max_newton=1, backend="numpy", on_failure="stop")
+    assert not tr.stable and np.all(np.isnan(tr.Qh[:, 1:])) and "step 1" in tr.info["failure"]
