@@ -29,7 +29,8 @@ import numpy as np
 
 from ._dolfinx import MPI, PETSc, dolfinx
 from ..errors import CheckpointMismatchError, FileFormatError, InputError
-from .integrators import MidpointIntegrator, _check_dt
+from .agreement import agree, check, together
+from .integrators import MidpointIntegrator, NewmarkIntegrator, _check_dt
 from ..core.io_atomic import atomic_savez
 from .lagrangian import LagrangianSystem
 from ..core.snapshots import Snapshots
@@ -78,7 +79,7 @@ class StateMap:
         key = np.round(X / scale, 10)
         perm = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
         if len(perm) > 1 and np.any(np.all(np.diff(key[perm], axis=0) == 0, axis=1)):
-            raise ValueError("several dofs share a coordinate (not a Lagrange-type space): pass "
+            raise InputError("several dofs share a coordinate (not a Lagrange-type space): pass "
                              "an explicit StateMap (see dolfinx_lopinf.scenes.beam for Hermite)")
         order = (G[perm][:, None] * bs + np.arange(bs)[None, :]).ravel()
         return cls(order, np.ones(len(order)), {})
@@ -135,6 +136,19 @@ def output_matrix_in_state(V, E_local: np.ndarray, state_map: StateMap) -> np.nd
     comm = V.mesh.comm
     imap = V.dofmap.index_map
     bs = V.dofmap.index_map_bs
+    n_local = (imap.size_local + imap.num_ghosts) * bs
+
+    def local():
+        E = np.asarray(E_local)
+        if E.ndim != 2 or E.shape[1] != n_local or E.dtype.kind not in "fiu":
+            raise InputError(f"E_local must be a real (p, n_local) array with n_local = {n_local} "
+                             f"on this rank (from point_output_matrix), got shape {E.shape}")
+        if not np.all(np.isfinite(E)):
+            raise InputError("E_local contains NaN or inf")
+        return E.shape[0]
+
+    p = check(comm, "output_matrix_in_state", local, state_map=_map_key(state_map))
+    agree(comm, "output_matrix_in_state", None, outputs=p)
     local_nodes = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
     glob = np.repeat(imap.local_to_global(local_nodes) * bs, bs) + np.tile(np.arange(bs), len(local_nodes))
     n = imap.size_global * bs
@@ -151,16 +165,26 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
 
     Built from ``Function.eval`` on unit dof vectors, so it is exact for any element.
     """
+    if not isinstance(V, dolfinx.fem.FunctionSpace):
+        raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
     msh = V.mesh
     comm = msh.comm
     bs = V.dofmap.index_map_bs
+    problem, points, comp = None, _points(points, msh.geometry.dim), None
+    if isinstance(points, str):
+        problem, points = points, None
     value_size = int(np.prod(V.value_shape)) if len(V.value_shape) else 1
-    if value_size > 1 and component is None:
-        raise ValueError(f"the space has {value_size} components: pass component=0..{value_size - 1}")
-    comp = 0 if component is None else int(component)
-    if not 0 <= comp < value_size:
-        raise ValueError(f"component must be in 0..{value_size - 1}, got {component}")
-    points = np.atleast_2d(np.asarray(points, dtype=float))
+    if problem is None and value_size > 1 and component is None:
+        problem = f"the space has {value_size} components: pass component=0..{value_size - 1}"
+    elif problem is None:
+        if component is not None and (isinstance(component, (bool, np.bool_))
+                                      or not isinstance(component, (int, np.integer))):
+            problem = f"component must be an integer in 0..{value_size - 1}, got {component!r}"
+        else:
+            comp = 0 if component is None else int(component)
+            if not 0 <= comp < value_size:
+                problem = f"component must be in 0..{value_size - 1}, got {component}"
+    agree(comm, "point_output_matrix", problem, points=points, component=comp)
     tree = dolfinx.geometry.bb_tree(msh, msh.topology.dim)
     candidates = dolfinx.geometry.compute_collisions_points(tree, points)
     colliding = dolfinx.geometry.compute_colliding_cells(msh, candidates, points)
@@ -171,7 +195,8 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
                       else comm.size for i in range(len(points))])
     owner = comm.allreduce(found, op=MPI.MIN)
     if np.any(owner == comm.size):
-        raise ValueError(f"points {points[owner == comm.size].tolist()} lie outside the mesh")
+        raise InputError(f"points {points[owner == comm.size].tolist()} lie outside the mesh "
+                         "(or on no owned cell of any rank): move them inside")
     probe = dolfinx.fem.Function(V)
     for i, point in enumerate(points):
         if owner[i] != comm.rank:
@@ -184,6 +209,30 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
                 probe.x.array[dof] = 1.0
                 E[i, dof] = probe.eval(point, np.array([cell], dtype=np.int32))[comp]
     return E
+
+
+def _points(points, gdim: int):
+    """Points as a finite (p, 3) array (columns beyond those given are 0), or a message."""
+    try:
+        P = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        return (f"points must be an array of coordinates (p, {gdim}) or (p, 3), got "
+                f"{type(points).__name__} {str(points)[:60]}")
+    if P.ndim == 1:
+        P = P[None, :]
+    if P.ndim != 2 or P.shape[0] == 0 or not gdim <= P.shape[1] <= 3:
+        return (f"points must have shape (p, {gdim}) or (p, 3) - one row of coordinates per "
+                f"point on this {gdim}-D mesh - got shape {np.shape(points)}")
+    if not np.all(np.isfinite(P)):
+        return f"points contain NaN or inf (rows {np.flatnonzero(~np.all(np.isfinite(P), axis=1)).tolist()})"
+    return np.hstack([P, np.zeros((P.shape[0], 3 - P.shape[1]))])
+
+
+def _map_key(state_map):
+    """What identifies a state map across ranks (for :func:`agree`)."""
+    if not isinstance(state_map, StateMap):
+        return state_map
+    return (np.asarray(state_map.order), np.asarray(state_map.scale, dtype=float))
 
 
 # -- input checks ---------------------------------------------------------------------------
@@ -206,16 +255,10 @@ def _count(value, name, minimum: int) -> int:
     return int(value)
 
 
-def _collective(comm, problem, cls=InputError):
+def _collective(comm, problem, cls=InputError, where="run"):
     """Raise ``cls(problem)`` on every rank when any rank has a problem (same verdict
-    everywhere; one allgather)."""
-    if comm.size == 1:
-        if problem is not None:
-            raise cls(problem)
-        return
-    for p in comm.allgather(problem):
-        if p is not None:
-            raise cls(p)
+    everywhere; one allgather, see :func:`~dolfinx_lopinf.fem.agreement.agree`)."""
+    agree(comm, where, None if problem is None else cls(problem))
 
 
 # -- checkpoints ----------------------------------------------------------------------------
@@ -733,29 +776,90 @@ def run_loop(integrator, n_steps: int, sinks=(), *, inputs=None, first_step: int
             raise InputError(f"run needs an Integrator (midpoint or Newmark, see "
                              f"dolfinx_lopinf.fem.integrators) or a LagrangianSystem, got "
                              f"{type(integrator).__name__} (no '{name}')")
-    n_steps = _count(n_steps, "n_steps", 0)
-    first_step = _count(first_step, "first_step", 1)
-    sinks = [s if isinstance(s, Sink) else Every(s) for s in sinks]
     comm = integrator.q.function_space.mesh.comm
+    loop, problem = None, None
+    try:
+        loop = _loop_plan(integrator, n_steps, sinks, inputs, first_step)
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it
+        problem = exc
+    agree(comm, "run", problem, **({} if loop is None else loop.pop("settings")))
+    n_steps, first_step, sinks = loop["n_steps"], loop["first_step"], loop["sinks"]
     state = LoopState(integrator, n_steps, comm)
     dt = integrator.dt
     t_begin = integrator.t - (first_step - 1) * dt
     state.k = first_step - 1
-    if first_step == 1:
-        for sink in sinks:
-            sink.start(state)
-    for k in range(first_step, n_steps + 1):
-        if inputs is None:
-            integrator.step()
-        else:
-            integrator.step(inputs(t_begin + k * dt))
-        state.k = k
-        for sink in sinks:
-            sink.after(state)
+    if loop["agreed"]:
+        integrator._agreed_loop = True  # every rank steps without values: no per-step check
+    try:
+        with together(comm, "run (the time loop: steps, inputs and sinks)"):
+            if first_step == 1:
+                for sink in sinks:
+                    sink.start(state)
+            for k in range(first_step, n_steps + 1):
+                if inputs is None:
+                    integrator.step()
+                else:
+                    integrator.step(inputs(t_begin + k * dt))
+                state.k = k
+                for sink in sinks:
+                    sink.after(state)
+    finally:
+        if loop["agreed"]:
+            integrator._agreed_loop = False
     seconds = comm.allreduce(time.perf_counter() - state.t_loop_start, op=MPI.MAX)
-    for sink in sinks:
-        sink.finish(state)
+    with together(comm, "run (the sinks' finish)"):
+        for sink in sinks:
+            sink.finish(state)
     return {"seconds": seconds, "steps": n_steps}
+
+
+def _loop_plan(integrator, n_steps, sinks, inputs, first_step) -> dict:
+    """:func:`run_loop`'s checks on this rank alone (raises; no collective): the counts, the
+    sinks as :class:`Sink` objects, the step function to call, the settings every rank must
+    share."""
+    n_steps = _count(n_steps, "n_steps", 0)
+    first_step = _count(first_step, "first_step", 1)
+    if isinstance(sinks, (Sink, str, bytes)) or callable(sinks) or not hasattr(sinks, "__iter__"):
+        raise InputError(f"sinks must be a list of Sink objects or callables f(state), got "
+                         f"{type(sinks).__name__}; wrap a single sink in a list: sinks=[sink]")
+    sinks = list(sinks)
+    for i, s in enumerate(sinks):
+        if not isinstance(s, Sink) and not callable(s):
+            raise InputError(f"sinks[{i}] = {s!r} is neither a Sink (StateRecorder, OutputProbe, "
+                             "EnergyProbe, FieldSnapshots, Every, ...) nor a callable f(state) "
+                             "called at every step; pass one of those")
+    sinks = [s if isinstance(s, Sink) else Every(s) for s in sinks]
+    if inputs is not None and not callable(inputs):
+        raise InputError(f"inputs must be a callable inputs(t) -> input values (or None), got "
+                         f"{type(inputs).__name__}")
+    name = type(integrator).__name__
+    if getattr(integrator, "closed", False):
+        raise InputError(f"the {name} was closed (close() or the end of its with block) and its "
+                         "PETSc objects destroyed; make a new one")
+    if not getattr(integrator, "initialized", True):
+        raise InputError(f"the {name} was never initialised: it would step from zero and "
+                         "record zeros. Call integrator.initialize(...) before run(integrator, "
+                         "n_steps) (run(system, q0, v0, dt, t_end) does it for you)")
+    agreed = False  # True: the integrator's step need not agree on its arguments every step
+    if isinstance(integrator, MidpointIntegrator):
+        if inputs is not None:
+            raise InputError("a MidpointIntegrator takes no input values (inputs= is for "
+                             "schemes with input channels, e.g. Newmark): put the forcing into "
+                             "the LagrangianSystem (forcing=..., time=...)")
+        agreed = True
+    elif isinstance(integrator, NewmarkIntegrator):
+        if integrator.inputs and inputs is None:
+            raise InputError(f"this NewmarkIntegrator has {len(integrator.inputs)} input "
+                             "channel(s): pass inputs=lambda t: values")
+        if not integrator.inputs and inputs is not None:
+            raise InputError("this NewmarkIntegrator has no input forms: drop inputs= (or build "
+                             "it with input_forms=...)")
+        agreed = inputs is None  # with inputs, their values are compared at every step
+    settings = {"n_steps": n_steps, "first_step": first_step,
+                "sinks": [type(s).__name__ for s in sinks], "inputs": inputs is not None,
+                "integrator": name, "dt": float(integrator.dt), "t": float(integrator.t)}
+    return {"n_steps": n_steps, "first_step": first_step, "sinks": sinks, "agreed": agreed,
+            "settings": settings}
 
 
 # -- the FOM run of a LagrangianSystem: the time loop with the recorder's sinks -------------
@@ -774,26 +878,47 @@ def _check_state_map(state_map, n_global: int) -> None:
         raise InputError("state_map.scale must be finite and nonzero")
 
 
-def _checkpoint_files(checkpoint, comm) -> _CheckpointFiles:
-    """This rank's checkpoint files under the prefix (collective check of its directory)."""
-    prefix = Path(checkpoint)
+def _checkpoint_files(checkpoint, rank: int) -> _CheckpointFiles:
+    """This rank's checkpoint files under the prefix (its directory checked on this rank)."""
+    try:
+        prefix = Path(checkpoint)
+    except TypeError:
+        raise InputError(f"checkpoint must be a path prefix (str or Path), got "
+                         f"{type(checkpoint).__name__}") from None
     directory = prefix.parent
-    problem = None
     if not directory.is_dir():
-        problem = (f"checkpoint = {str(checkpoint)!r}: the directory {directory} does not exist "
-                   "(create it first)")
-    elif not os.access(directory, os.W_OK | os.X_OK):
-        problem = f"checkpoint = {str(checkpoint)!r}: the directory {directory} is not writable"
-    _collective(comm, problem)
-    return _CheckpointFiles(prefix, comm.rank)
+        raise InputError(f"checkpoint = {str(checkpoint)!r}: the directory {directory} does not "
+                         "exist (create it first)")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise InputError(f"checkpoint = {str(checkpoint)!r}: the directory {directory} is not "
+                         "writable")
+    return _CheckpointFiles(prefix, rank)
 
 
 def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map, energy_every,
-          energy_until, integrator, checkpoint, checkpoint_every) -> dict:
-    """Every input of :func:`run` checked before any work (all ranks reach the same verdict);
-    returns the derived step counts and sizes."""
+          energy_until, integrator, checkpoint, checkpoint_every, record_velocity,
+          checkpoint_restart) -> dict:
+    """Every input of :func:`run` checked before any work: on each rank, then one collective
+    verdict (:func:`~dolfinx_lopinf.fem.agreement.agree`) - the same error on every rank, also
+    when the ranks passed different settings. Returns the derived step counts and sizes."""
     if not isinstance(system, LagrangianSystem):
         raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
+    comm = system.V.mesh.comm
+    plan, problem = None, None
+    try:
+        plan = _plan_local(system, dt, t_end, record_every, state_until, output_matrix, state_map,
+                           energy_every, energy_until, integrator, checkpoint, checkpoint_every,
+                           record_velocity, checkpoint_restart)
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it
+        problem = exc
+    agree(comm, "run", problem, **({} if plan is None else plan.pop("settings")))
+    return plan
+
+
+def _plan_local(system, dt, t_end, record_every, state_until, output_matrix, state_map,
+                energy_every, energy_until, integrator, checkpoint, checkpoint_every,
+                record_velocity, checkpoint_restart) -> dict:
+    """:func:`_plan` on this rank alone (raises on a bad value; no collective)."""
     dt = _check_dt(dt)
     t_end = _number(t_end, "t_end")
     if t_end <= 0:
@@ -830,30 +955,45 @@ def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map
     n_owned = imap.size_local * bs
     n_local = (imap.size_local + imap.num_ghosts) * bs
     n_global = imap.size_global * bs
-    problem = None
+    p_out = None
     if output_matrix is not None:
         E = np.asarray(output_matrix)
         if E.ndim != 2 or E.shape[1] != n_local or not np.issubdtype(E.dtype, np.floating):
-            problem = (f"output_matrix must be a real (p, n_local) array with n_local = {n_local} "
-                       f"on this rank (from point_output_matrix), got shape {E.shape}, {E.dtype}")
-        elif not np.all(np.isfinite(E)):
-            problem = "output_matrix contains NaN or inf"
-    _collective(comm, problem)
+            raise InputError(f"output_matrix must be a real (p, n_local) array with n_local = "
+                             f"{n_local} on this rank (from point_output_matrix), got shape "
+                             f"{E.shape}, {E.dtype}")
+        if not np.all(np.isfinite(E)):
+            raise InputError("output_matrix contains NaN or inf")
+        p_out = E.shape[0]
     if state_map is not None:
         _check_state_map(state_map, n_global)
     if integrator is not None:
         if not isinstance(integrator, MidpointIntegrator) or integrator.system is not system:
             raise InputError("integrator must be a MidpointIntegrator of this same system")
+        if integrator.closed:
+            raise InputError("integrator was closed (close() or the end of its with block): "
+                             "pass an open one, or none (run makes its own)")
         if abs(integrator.dt - dt) > 1e-15 * dt:
             raise InputError(f"the integrator's dt = {integrator.dt} differs from dt = {dt}")
     files = None
     if checkpoint is not None:
         checkpoint_every = _count(checkpoint_every, "checkpoint_every", 1)
-        files = _checkpoint_files(checkpoint, comm)
+        files = _checkpoint_files(checkpoint, comm.rank)
+    for name, flag in (("record_velocity", record_velocity), ("checkpoint_restart", checkpoint_restart)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise InputError(f"{name} must be True or False, got {flag!r}")
+    # what every rank must have passed alike (the checkpoint prefix may differ: node-local disks)
+    settings = {"dt": dt, "t_end": t_end, "record_every": record_every, "state_until": state_until,
+                "energy_every": energy_every, "energy_until": energy_until,
+                "output_matrix rows": p_out, "state_map": _map_key(state_map),
+                "record_velocity": bool(record_velocity), "integrator": integrator is not None,
+                "checkpoint": checkpoint is not None,
+                "checkpoint_every": checkpoint_every if checkpoint is not None else None,
+                "checkpoint_restart": bool(checkpoint_restart)}
     return dict(dt=dt, t_end=t_end, n_steps=n_steps, record_every=record_every,
                 n_state_steps=n_state_steps, n_energy_steps=n_energy_steps,
                 energy_every=energy_every, n_owned=n_owned, n_global=n_global, files=files,
-                checkpoint_every=checkpoint_every)
+                checkpoint_every=checkpoint_every, settings=settings)
 
 
 def run(system, *args, **kwargs):
@@ -927,12 +1067,14 @@ def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, rec
         wrote to checkpoint files) and ``checkpoint_seconds`` (time spent writing them).
     """
     plan = _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map,
-                 energy_every, energy_until, integrator, checkpoint, checkpoint_every)
+                 energy_every, energy_until, integrator, checkpoint, checkpoint_every,
+                 record_velocity, checkpoint_restart)
     state_map = StateMap.from_coordinates(system.V) if state_map is None else state_map
     stepper = integrator if integrator is not None else MidpointIntegrator(system, plan["dt"])
     try:
-        return _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map,
-                             record_velocity, progress, checkpoint_restart)
+        with together(system.V.mesh.comm, "run"):
+            return _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map,
+                                 record_velocity, progress, checkpoint_restart)
     finally:
         if integrator is None:
             stepper.close()
