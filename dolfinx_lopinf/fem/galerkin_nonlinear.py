@@ -116,9 +116,13 @@ class _Lift:
             raise InputError(f"state_map must be a StateMap, got {type(state_map).__name__}")
         n = len(state_map.order)
         basis = np.asarray(basis, dtype=float)
-        if basis.ndim != 2 or basis.shape[0] != n or not np.all(np.isfinite(basis)):
+        if basis.ndim != 2 or basis.shape[0] != n:
             raise InputError(f"basis must be a finite (n, r) array with n = {n} state rows (on "
                              f"every rank), got shape {basis.shape}")
+        if not np.all(np.isfinite(basis)):
+            bad = np.argwhere(~np.isfinite(basis))
+            raise InputError(f"basis contains {len(bad)} NaN/inf entries (first at row "
+                             f"{bad[0][0]}, column {bad[0][1]})")
         self.W = np.ascontiguousarray(state_map.to_local_dofs(V, basis))  # (local dofs, r)
         if u0 is None:
             self.u0 = np.zeros(len(self.W))

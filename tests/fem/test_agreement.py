@@ -1,0 +1,252 @@
+"""Issue 27, every rank agrees: a bad or different argument on one rank raises the same error
+on every rank (never a hang), an exception on one rank alone ends the job (never a hang), and
+the pieces behind it (fem.agreement, the excepthook safety net) do what they say.
+
+The 2-rank cases run tests/fem/mpi_disagree.py under mpiexec with a timeout."""
+
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
+
+from dolfinx_lopinf.errors import InputError  # noqa: E402
+
+SCRIPT = Path(__file__).with_name("mpi_disagree.py")
+TIMEOUT = 120  # s: every case of mpi_disagree.py takes ~10 s on 2 ranks together
+
+# case -> (error class, a piece of the message) expected on BOTH ranks
+CASES = {
+    "run_dt": ("RanksDisagreeError", r"run: the ranks passed different arguments - dt \(rank 0: 0.001; rank 1: 0.002\)"),
+    "run_t_end": ("RanksDisagreeError", r"t_end \(rank 0: 0.02; rank 1: 0.04\)"),
+    "run_record_every": ("RanksDisagreeError", r"record_every \(rank 0: 1; rank 1: 2\)"),
+    "run_t_end_not_whole_on_one_rank": ("InputError", r"not a whole number of steps.*\[found on rank 1 of 2"),
+    "run_state_map": ("RanksDisagreeError", r"state_map \(rank 0: array of shape \(2, 17\)"),
+    "loop_steps": ("RanksDisagreeError", r"n_steps \(rank 0: 7; rank 1: 10\)"),
+    "loop_sinks": ("RanksDisagreeError", r"sinks \(rank 0: \[\]; rank 1: \['OutputProbe'\]\)"),
+    "loop_bad_sink_one_rank": ("InputError", r"sinks\[0\] = 5 is neither a Sink"),
+    "loop_closed": ("InputError", r"MidpointIntegrator was closed"),
+    "step_input_one_rank": ("InputError", r"takes no input values.*\[found on rank 1 of 2"),
+    "initialize_nan_one_rank": ("InputError", r"q0 contains NaN or inf \[found on rank 1 of 2"),
+    "integrator_dt": ("RanksDisagreeError", r"MidpointIntegrator: .* dt \(rank 0: 0.001; rank 1: 0.002\)"),
+    "newmark_inputs_differ": ("RanksDisagreeError", r"NewmarkIntegrator.step: .* input values"),
+    "newmark_step_length": ("InputError", r"expected 1 input value\(s\).*got 2 \[found on rank 1"),
+    "probe_nan_V_one_rank": ("InputError", r"V contains 1 NaN/inf entries.*\[found on rank 1 of 2"),
+    "probe_Q_differs": ("RanksDisagreeError", r"probe: .* - Q \(rank 0: array of shape \(2, 3\)"),
+    "points_differ": ("RanksDisagreeError", r"point_output_matrix: .* points"),
+    "points_nan_one_rank": ("InputError", r"points contain NaN or inf.*\[found on rank 1 of 2"),
+    "reduced_matrix_basis_differs": ("RanksDisagreeError", r"reduced_matrix: .* basis"),
+    "pod_append_nan_one_rank": ("InputError", r"snapshot 3 contains NaN or inf \[found on rank 1"),
+    "pod_r_differs": ("RanksDisagreeError", r"StreamingPOD.compute: .* r \(rank 0: 1; rank 1: 2\)"),
+    "galerkin_basis_nan_one_rank": ("InputError", r"basis contains 1 NaN/inf entries.*\[found on rank 1"),
+    "galerkin_q_differs": ("RanksDisagreeError", r"GalerkinForce: .* q \(rank 0"),
+    "vtx_engine_differs": ("RanksDisagreeError", r"write_vtx: .* engine \(rank 0: 'BP4'; rank 1: 'BP5'\)"),
+    "vtx_unrelated_folder": ("InputError", r"photos.bp' exists and is not a VTX .bp folder.*IMG_001.jpg"),
+}
+
+
+def _mpirun(mpiexec, which, timeout=TIMEOUT, **env):
+    """(return code or None on timeout, output, seconds) of mpi_disagree.py ``which`` on 2 ranks."""
+    environment = {**os.environ, **env}
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(SCRIPT), which],
+                              capture_output=True, text=True, timeout=timeout, env=environment)
+        return proc.returncode, proc.stdout + proc.stderr, time.perf_counter() - t0
+    except subprocess.TimeoutExpired as exc:
+        out = (exc.stdout or b"").decode() + (exc.stderr or b"").decode() \
+            if isinstance(exc.stdout, bytes) else (exc.stdout or "") + (exc.stderr or "")
+        return None, out, time.perf_counter() - t0
+
+
+@pytest.fixture(scope="module")
+def disagreeing(mpiexec):
+    """Every case of mpi_disagree.py on 2 ranks, once: (results {case: {rank: line}}, output,
+    return code, seconds)."""
+    rc, out, seconds = _mpirun(mpiexec, "agree")
+    results: dict = {}
+    for m in re.finditer(r"^RESULT (\S+) rank=(\d) (.*)$", out, re.M):
+        results.setdefault(m[1], {})[int(m[2])] = m[3]
+    print(f"\n2-rank disagreement cases: {seconds:.1f} s (return code {rc})")
+    return results, out, rc, seconds
+
+
+@pytest.mark.mpi
+@pytest.mark.parametrize("name", list(CASES))
+def test_two_ranks_raise_the_same_error(disagreeing, name):
+    results, out, rc, _ = disagreeing
+    started = re.findall(r"^START (\S+)", out, re.M)
+    assert name in results and set(results[name]) == {0, 1}, (
+        f"no result from both ranks for {name} (return code {rc}; last case started: "
+        f"{started[-1] if started else None}): a hang or a crash\n{out[-3000:]}")
+    cls, pattern = CASES[name]
+    assert results[name][0] == results[name][1], results[name]  # the same text on both ranks
+    assert results[name][0].startswith(cls + ":"), results[name][0]
+    assert re.search(pattern, results[name][0]), results[name][0]
+
+
+@pytest.mark.mpi
+def test_all_cases_ran_and_nothing_was_lost(disagreeing):
+    results, out, rc, _ = disagreeing
+    assert rc == 0, out[-3000:]
+    assert set(results) == set(CASES)
+    assert "ALL DONE rank=0" in out and "ALL DONE rank=1" in out
+    assert "PHOTOS ['IMG_001.jpg']" in out  # the unrelated folder was left alone
+
+
+@pytest.mark.mpi
+def test_uncaught_exception_on_one_rank_aborts_instead_of_hanging(mpiexec):
+    """lo.fit refuses rank 1's data (uncaught) while rank 0 waits in a barrier: the safety net
+    aborts the job with rank 1's traceback (on main: a hang until killed)."""
+    rc, out, seconds = _mpirun(mpiexec, "fit", timeout=90)
+    assert rc is not None, f"hung for {seconds:.0f} s\n{out[-2000:]}"
+    assert rc != 0
+    assert "Q contains 1 non-finite value" in out
+    assert "rank 1 of 2 stopped on the uncaught InputError" in out
+    assert "PASSED THE BARRIER" not in out
+
+
+@pytest.mark.mpi
+def test_exception_on_one_rank_inside_the_loop_aborts_instead_of_hanging(mpiexec):
+    """A sink raises on rank 1 only (and the user catches it): the other rank is in the next
+    step's solve; run's region notices that rank 0 never failed and aborts the job."""
+    rc, out, seconds = _mpirun(mpiexec, "sink_one", timeout=90, LOPINF_MPI_TIMEOUT="3")
+    assert rc is not None, f"hung for {seconds:.0f} s\n{out[-2000:]}"
+    assert rc != 0
+    assert "sink failed at step 3 on rank 1" in out
+    assert "rank 1 of 2 raised the RuntimeError above in run" in out
+    assert "DONE rank=" not in out
+
+
+@pytest.mark.mpi
+def test_exception_on_every_rank_is_raised_on_every_rank(mpiexec):
+    """The same sink failing on both ranks: each raises it, the program goes on (no abort)."""
+    rc, out, seconds = _mpirun(mpiexec, "sink_all", timeout=90, LOPINF_MPI_TIMEOUT="3")
+    assert rc == 0, out[-2000:]
+    for r in (0, 1):
+        assert f"RESULT sink rank={r} RuntimeError: sink failed at step 3 on rank {r}" in out
+        assert f"DONE rank={r}" in out
+
+
+# -- the pieces, on one rank ------------------------------------------------------------------
+
+class FakeComm:
+    """A 2-rank communicator whose other rank's allgather contribution is given."""
+
+    size, rank = 2, 0
+
+    def __init__(self, other):
+        self.other = other
+
+    def allgather(self, mine):
+        return [mine, self.other]
+
+
+def _other(problem=None, **settings):
+    from dolfinx_lopinf.fem.agreement import digest
+
+    return (problem, {k: digest(v) for k, v in settings.items()})
+
+
+def test_agree_names_each_differing_setting_and_every_rank():
+    from dolfinx_lopinf.errors import RanksDisagreeError
+    from dolfinx_lopinf.fem.agreement import agree
+
+    comm = FakeComm(_other(dt=0.002, n=3, name="u"))
+    with pytest.raises(RanksDisagreeError, match=r"run: .* dt \(rank 0: 0.001; rank 1: 0.002\), "
+                                                  r"n \(rank 0: 4; rank 1: 3\)\. Every rank") as info:
+        agree(comm, "run", None, dt=0.001, n=4, name="u")
+    assert getattr(info.value, "__lopinf_collective__", False)
+    agree(FakeComm(_other(dt=np.float64(0.001), a=np.arange(3.0))), "run", None, dt=0.001,
+          a=np.arange(3.0))  # equal values of other types agree
+
+
+def test_agree_raises_another_ranks_problem_with_its_class():
+    from dolfinx_lopinf.errors import FileFormatError
+    from dolfinx_lopinf.fem.agreement import agree
+
+    comm = FakeComm(_other(("dolfinx_lopinf.errors", "FileFormatError", "chunk 3 is corrupt")))
+    with pytest.raises(FileFormatError, match=r"chunk 3 is corrupt \[found on rank 1 of 2; raised "
+                                              r"on every rank\]"):
+        agree(comm, "run", None, dt=1.0)
+    comm = FakeComm(_other(("builtins", "ZeroDivisionError", "division by zero")))
+    with pytest.raises(InputError, match="ZeroDivisionError: division by zero"):
+        agree(comm, "run", None)
+    with pytest.raises(InputError, match="mine"):  # the lowest failing rank's problem first
+        agree(FakeComm(_other(("builtins", "ValueError", "theirs"))), "run", "mine")
+
+
+def test_digest_tells_values_apart():
+    from dolfinx_lopinf.fem.agreement import digest
+
+    a = np.arange(12.0).reshape(3, 4)
+    b = a.copy()
+    b[2, 3] += 1e-15 * b[2, 3]
+    assert digest(a)[0] == digest(a.copy())[0] != digest(b)[0]
+    assert digest(a)[0] != digest(a.T.copy())[0]
+    assert digest(np.nan)[0] == digest(float("nan"))[0]
+    assert digest({"ksp_type": "cg"})[0] != digest({"ksp_type": "gmres"})[0]
+    assert digest(np.int64(3))[0] == digest(3)[0] and digest(3)[0] != digest(3.0)[0]
+
+
+def test_together_on_one_rank_is_transparent():
+    from dolfinx_lopinf.fem._dolfinx import MPI
+    from dolfinx_lopinf.fem.agreement import together
+
+    with pytest.raises(KeyError):
+        with together(MPI.COMM_SELF, "x"):
+            raise KeyError("k")
+    with together(MPI.COMM_SELF, "x"):
+        pass
+
+
+def test_safety_net_is_installed_only_on_several_ranks_and_never_over_a_users_hook(monkeypatch):
+    from dolfinx_lopinf import _mpi_abort
+
+    monkeypatch.setattr(sys, "excepthook", sys.__excepthook__)
+    assert _mpi_abort.install() is False  # one rank (this pytest process): nothing to guard
+    assert sys.excepthook is sys.__excepthook__
+
+    class World:  # a fake 2-rank MPI
+        class COMM_WORLD:
+            aborted = []
+
+            @staticmethod
+            def Get_size():
+                return 2
+
+            @staticmethod
+            def Get_rank():
+                return 1
+
+            @classmethod
+            def Abort(cls, code):
+                cls.aborted.append(code)
+
+        Is_initialized = staticmethod(lambda: True)
+        Is_finalized = staticmethod(lambda: False)
+
+    monkeypatch.setitem(sys.modules, "mpi4py.MPI", World)
+    users = lambda *a: None  # noqa: E731
+    monkeypatch.setattr(sys, "excepthook", users)
+    assert _mpi_abort.install() is False and sys.excepthook is users  # the user's hook stays
+    monkeypatch.setattr(sys, "excepthook", sys.__excepthook__)
+    monkeypatch.setenv("LOPINF_MPI_ABORT", "0")
+    assert _mpi_abort.install() is False
+    monkeypatch.delenv("LOPINF_MPI_ABORT")
+    assert _mpi_abort.install() is True and sys.excepthook is _mpi_abort._hook
+    try:
+        raise InputError("only on this rank")
+    except InputError as exc:
+        _mpi_abort._hook(type(exc), exc, exc.__traceback__)
+    assert World.COMM_WORLD.aborted == [1]
+    collective = InputError("on every rank")
+    collective.__lopinf_collective__ = True
+    _mpi_abort._hook(InputError, collective, None)  # every rank raises it: no abort
+    assert World.COMM_WORLD.aborted == [1]
