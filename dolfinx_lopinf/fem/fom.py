@@ -536,6 +536,14 @@ def run_loop(integrator, n_steps: int, sinks=(), *, inputs=None, first_step: int
 
     Returns:
         ``{"seconds": wall time of the loop (max over ranks), "steps": n_steps}``.
+
+    Collective: the arguments are checked on every rank and agreed on (n_steps, first_step,
+    the kinds of sinks, whether there are inputs, the integrator's dt and t must be the same
+    on every rank; the same error on every rank otherwise), the integrator must be open and
+    initialised. With inputs, their values are compared at every step (one small allgather;
+    on one rank nothing). A sink or input function that raises on one rank only aborts the
+    job (the other ranks are inside the next step's solve; see
+    :mod:`dolfinx_lopinf.fem.agreement`).
     """
     for name in ("step", "velocity", "energy", "dt", "q"):
         if not hasattr(integrator, name):
@@ -621,8 +629,10 @@ def _loop_plan(integrator, n_steps, sinks, inputs, first_step) -> dict:
             raise InputError("this NewmarkIntegrator has no input forms: drop inputs= (or build "
                              "it with input_forms=...)")
         agreed = inputs is None  # with inputs, their values are compared at every step
+    # a progress bar on rank 0 only is fine (no collective); every other sink must be on all
     settings = {"n_steps": n_steps, "first_step": first_step,
-                "sinks": [type(s).__name__ for s in sinks], "inputs": inputs is not None,
+                "sinks": [type(s).__name__ for s in sinks if not isinstance(s, Progress)],
+                "inputs": inputs is not None,
                 "integrator": name, "dt": float(integrator.dt), "t": float(integrator.t)}
     return {"n_steps": n_steps, "first_step": first_step, "sinks": sinks, "agreed": agreed,
             "settings": settings}
@@ -769,7 +779,13 @@ def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, rec
     """Integrate the FOM and record snapshots.
 
     Every argument is checked before the first step (all ranks reach the same verdict);
-    bad values raise :class:`~dolfinx_lopinf.errors.InputError` naming the argument.
+    bad values raise :class:`~dolfinx_lopinf.errors.InputError` naming the argument, on every
+    rank, also when only one rank has them. On several ranks dt, t_end, record_every,
+    state_until, energy_every, energy_until, record_velocity, the state map, the number of
+    outputs and the checkpoint settings must be the same on every rank (else
+    :class:`~dolfinx_lopinf.errors.RanksDisagreeError` on every rank, naming each rank's value;
+    the checkpoint prefix may differ, e.g. node-local disks). An exception on one rank alone
+    during the run aborts the job instead of hanging (:mod:`dolfinx_lopinf.fem.agreement`).
 
     Args:
         system: the Lagrangian system.

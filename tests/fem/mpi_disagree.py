@@ -1,13 +1,14 @@
 """Ranks that disagree (issue 27), run under mpiexec -n 2 by test_agreement.py.
 
-``python mpi_disagree.py agree`` (or ``agree=<case>`` for one of them): every case below gives one rank another (or a bad) argument
-of a collective entry point; each rank catches what it raises and prints one line
-``RESULT <case> rank=<r> <ErrorClass>: <message>`` - the test asserts both ranks raised the
-same error, and that nothing hung (the run is under a timeout; ``START <case>`` lines show
-where it stopped). ``fit``: rank 1's lo.fit refuses its data, uncaught, while rank 0 waits
-in a barrier (the job must abort, not hang). ``sink_one``: a sink raises on rank 1 only
-inside the time loop (the job must abort). ``sink_all``: a sink raises on both ranks (both
-must raise it and exit normally).
+``python mpi_disagree.py agree [LOGDIR]`` (``agree=<case>``: that case alone): every case below
+gives one rank another (or a bad) argument of a collective entry point; each rank catches what
+it raises and logs one line ``RESULT <case> rank=<r> <ErrorClass>: <message>`` (to stdout, and
+to LOGDIR/rank<r>.txt, free of the interleaving of the two ranks' output) - the test asserts
+both ranks raised the same error, and that nothing hung (the run is under a timeout; ``START
+<case>`` lines show where it stopped). ``fit``: rank 1's lo.fit refuses its data, uncaught,
+while rank 0 waits in a barrier (the job must abort, not hang). ``sink_one``: a sink raises
+on rank 1 only inside the time loop (the job must abort). ``sink_all``: a sink raises on both
+ranks (both must raise it and exit normally).
 """
 import os
 import sys
@@ -45,18 +46,26 @@ def string(n=16):
 
 
 ONLY = None  # "agree=<case>" runs that case alone
+LOG = None  # a folder: each rank also writes its lines to rank<r>.txt there (no interleaving)
+
+
+def log(line):
+    print(line, flush=True)
+    if LOG is not None:
+        with open(Path(LOG) / f"rank{rank}.txt", "a") as f:
+            f.write(line + "\n")
 
 
 def case(name, fn):
     if ONLY is not None and name != ONLY:
         return
-    print(f"START {name} rank={rank}", flush=True)
+    log(f"START {name} rank={rank}")
     try:
         fn()
         line = "no error"
     except Exception as exc:  # noqa: BLE001
         line = f"{type(exc).__name__}: {exc}".replace("\n", " ")
-    print(f"RESULT {name} rank={rank} {line}", flush=True)
+    log(f"RESULT {name} rank={rank} {line}")
     comm.Barrier()  # both ranks are back in step: the next case starts together
 
 
@@ -102,8 +111,8 @@ def agree_cases():
                                                   step_size=1e-4, levels=2, step_tol=None))
     case("probe_Q_differs", lambda: lo.probe(system, B, sm, Q * (2.0 if other else 1.0), Vel,
                                              step_size=1e-4, levels=2, step_tol=None))
-    case("points_differ", lambda: point_output_matrix(V, [[0.7 if other else 0.5]]))
-    case("points_nan_one_rank", lambda: point_output_matrix(V, [[np.nan if other else 0.5]]))
+    case("points_differ", lambda: point_output_matrix(V, [[0.7 if other else 0.5, 0, 0]]))
+    case("points_nan_one_rank", lambda: point_output_matrix(V, [[np.nan if other else 0.5, 0, 0]]))
     mass = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(
         ufl.TrialFunction(V) * ufl.TestFunction(V) * ufl.dx))
     mass.assemble()
@@ -135,7 +144,7 @@ def agree_cases():
     comm.Barrier()
     case("vtx_unrelated_folder", lambda: lo.write_vtx(d / "photos.bp", V, S, [0.0, 1.0]))
     if rank == 0:
-        print(f"PHOTOS {sorted(os.listdir(d / 'photos.bp'))}", flush=True)
+        log(f"PHOTOS {sorted(os.listdir(d / 'photos.bp'))}")
 
 
 def fit_case():
@@ -145,7 +154,7 @@ def fit_case():
         Q[0, 5] = np.nan
     lo.fit(lo.Snapshots(times=t, Q=Q), 2)  # raises on rank 1 only, uncaught
     comm.Barrier()  # rank 0 waits here
-    print(f"PASSED THE BARRIER rank={rank}", flush=True)
+    log(f"PASSED THE BARRIER rank={rank}")
 
 
 def sink_case(on_every_rank: bool):
@@ -160,17 +169,18 @@ def sink_case(on_every_rank: bool):
     try:
         lo.run(it, 10, sinks=[sink])
     except RuntimeError as exc:
-        print(f"RESULT sink rank={rank} RuntimeError: {exc}", flush=True)
+        log(f"RESULT sink rank={rank} RuntimeError: {exc}")
     comm.Barrier()
-    print(f"DONE rank={rank}", flush=True)
+    log(f"DONE rank={rank}")
 
 
 if __name__ == "__main__":
     which, _, ONLY = sys.argv[1].partition("=")
     ONLY = ONLY or None
+    LOG = sys.argv[2] if len(sys.argv) > 2 else None
     if which == "agree":
         agree_cases()
-        print(f"ALL DONE rank={rank}", flush=True)
+        log(f"ALL DONE rank={rank}")
     elif which == "fit":
         fit_case()
     elif which == "sink_one":

@@ -51,27 +51,33 @@ CASES = {
 }
 
 
-def _mpirun(mpiexec, which, timeout=TIMEOUT, **env):
-    """(return code or None on timeout, output, seconds) of mpi_disagree.py ``which`` on 2 ranks."""
+def _mpirun(mpiexec, which, logs: Path, timeout=TIMEOUT, **env):
+    """(return code or None on timeout, output, seconds) of mpi_disagree.py ``which`` on 2 ranks;
+    the output is the job's stdout and stderr, then each rank's own log (whole lines)."""
     environment = {**os.environ, **env}
+    logs.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(SCRIPT), which],
+        proc = subprocess.run([mpiexec, "-n", "2", sys.executable, str(SCRIPT), which, str(logs)],
                               capture_output=True, text=True, timeout=timeout, env=environment)
-        return proc.returncode, proc.stdout + proc.stderr, time.perf_counter() - t0
+        rc, out = proc.returncode, proc.stdout + proc.stderr
     except subprocess.TimeoutExpired as exc:
-        out = (exc.stdout or b"").decode() + (exc.stderr or b"").decode() \
-            if isinstance(exc.stdout, bytes) else (exc.stdout or "") + (exc.stderr or "")
-        return None, out, time.perf_counter() - t0
+        rc, out = None, "".join(x.decode() if isinstance(x, bytes) else x
+                                for x in (exc.stdout or "", exc.stderr or ""))
+    seconds = time.perf_counter() - t0
+    out += "".join("\n" + log.read_text() for log in sorted(logs.glob("rank*.txt")))
+    return rc, out, seconds
 
 
 @pytest.fixture(scope="module")
-def disagreeing(mpiexec):
+def disagreeing(mpiexec, tmp_path_factory):
     """Every case of mpi_disagree.py on 2 ranks, once: (results {case: {rank: line}}, output,
     return code, seconds)."""
-    rc, out, seconds = _mpirun(mpiexec, "agree")
+    logs = tmp_path_factory.mktemp("disagree")
+    rc, out, seconds = _mpirun(mpiexec, "agree", logs)
     results: dict = {}
-    for m in re.finditer(r"^RESULT (\S+) rank=(\d) (.*)$", out, re.M):
+    lines = "".join(log.read_text() for log in sorted(logs.glob("rank*.txt")))
+    for m in re.finditer(r"^RESULT (\S+) rank=(\d) (.*)$", lines, re.M):
         results.setdefault(m[1], {})[int(m[2])] = m[3]
     print(f"\n2-rank disagreement cases: {seconds:.1f} s (return code {rc})")
     return results, out, rc, seconds
@@ -101,10 +107,10 @@ def test_all_cases_ran_and_nothing_was_lost(disagreeing):
 
 
 @pytest.mark.mpi
-def test_uncaught_exception_on_one_rank_aborts_instead_of_hanging(mpiexec):
+def test_uncaught_exception_on_one_rank_aborts_instead_of_hanging(mpiexec, tmp_path):
     """lo.fit refuses rank 1's data (uncaught) while rank 0 waits in a barrier: the safety net
     aborts the job with rank 1's traceback (on main: a hang until killed)."""
-    rc, out, seconds = _mpirun(mpiexec, "fit", timeout=90)
+    rc, out, seconds = _mpirun(mpiexec, "fit", tmp_path, timeout=90)
     assert rc is not None, f"hung for {seconds:.0f} s\n{out[-2000:]}"
     assert rc != 0
     assert "Q contains 1 non-finite value" in out
@@ -113,10 +119,10 @@ def test_uncaught_exception_on_one_rank_aborts_instead_of_hanging(mpiexec):
 
 
 @pytest.mark.mpi
-def test_exception_on_one_rank_inside_the_loop_aborts_instead_of_hanging(mpiexec):
+def test_exception_on_one_rank_inside_the_loop_aborts_instead_of_hanging(mpiexec, tmp_path):
     """A sink raises on rank 1 only (and the user catches it): the other rank is in the next
     step's solve; run's region notices that rank 0 never failed and aborts the job."""
-    rc, out, seconds = _mpirun(mpiexec, "sink_one", timeout=90, LOPINF_MPI_TIMEOUT="3")
+    rc, out, seconds = _mpirun(mpiexec, "sink_one", tmp_path, timeout=90, LOPINF_MPI_TIMEOUT="3")
     assert rc is not None, f"hung for {seconds:.0f} s\n{out[-2000:]}"
     assert rc != 0
     assert "sink failed at step 3 on rank 1" in out
@@ -125,9 +131,9 @@ def test_exception_on_one_rank_inside_the_loop_aborts_instead_of_hanging(mpiexec
 
 
 @pytest.mark.mpi
-def test_exception_on_every_rank_is_raised_on_every_rank(mpiexec):
+def test_exception_on_every_rank_is_raised_on_every_rank(mpiexec, tmp_path):
     """The same sink failing on both ranks: each raises it, the program goes on (no abort)."""
-    rc, out, seconds = _mpirun(mpiexec, "sink_all", timeout=90, LOPINF_MPI_TIMEOUT="3")
+    rc, out, seconds = _mpirun(mpiexec, "sink_all", tmp_path, timeout=90, LOPINF_MPI_TIMEOUT="3")
     assert rc == 0, out[-2000:]
     for r in (0, 1):
         assert f"RESULT sink rank={r} RuntimeError: sink failed at step 3 on rank {r}" in out
