@@ -250,6 +250,7 @@ class MidpointIntegrator(_Closing):
         agree(comm, "MidpointIntegrator", None, dt=dt, petsc_options=petsc_options)
         prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
         self.system, self.dt, self.prefix = system, float(dt), prefix
+        self._comm = comm
         self._snes = self._ksp = None
         self._pending_options = []
         _check_homogeneous(system.bcs, V)
@@ -424,7 +425,7 @@ class MidpointIntegrator(_Closing):
         problem = self._step_problem(u, False)
         if self._agreed_loop and problem is None:
             return self._step_agreed()
-        agree(self.system.V.mesh.comm, "MidpointIntegrator.step", problem)
+        agree(self._comm, "MidpointIntegrator.step", problem)
         return self._step_agreed()
 
     def _step_agreed(self) -> "fem.Function":
@@ -582,6 +583,7 @@ class NewmarkIntegrator(_Closing):
         _check_homogeneous(system.bcs, system.V)
         prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
         self.system, self.dt, self.prefix = system, float(dt), prefix
+        self._comm = comm
         V = system.V
         bcs = list(system.bcs)
         self._bcs = bcs
@@ -647,7 +649,7 @@ class NewmarkIntegrator(_Closing):
         """The input values, the same on every rank (else the same error on every rank)."""
         found, values = self._values(u, what)
         problem = problem or found
-        agree(self.system.V.mesh.comm, f"NewmarkIntegrator.{what}", problem,
+        agree(self._comm, f"NewmarkIntegrator.{what}", problem,
               **({"input values": values} if problem is None else {}))
         return values
 
