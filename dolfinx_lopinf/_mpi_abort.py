@@ -51,17 +51,31 @@ def _hook(exc_type, exc, tb):
     comm = MPI.COMM_WORLD
     if comm.Get_size() == 1:
         return
-    try:
-        sys.stdout.flush()
-    except Exception:  # pragma: no cover
-        pass
     sys.stderr.write(
         f"dolfinx_lopinf: rank {comm.Get_rank()} of {comm.Get_size()} stopped on the uncaught "
-        f"{exc_type.__name__} above; the other ranks would wait for it forever in their next "
-        "collective, so the MPI job is aborted (MPI_Abort). Set LOPINF_MPI_ABORT=0 to "
-        "disable this.\n")
-    sys.stderr.flush()
-    comm.Abort(1)
+        f"{exc_type.__name__} above ({_summary(exc)}); the other ranks would wait for it "
+        "forever in their next collective, so the MPI job is aborted (MPI_Abort). Set "
+        "LOPINF_MPI_ABORT=0 to disable this.\n")
+    abort(comm)
+
+
+def _summary(exc) -> str:
+    text = str(exc).replace("\n", " ")
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def abort(comm, code: int = 1) -> None:
+    """``comm.Abort(code)`` after flushing the output and a short pause, so the launcher
+    forwards this rank's last words before it kills the job."""
+    import time
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except Exception:  # pragma: no cover
+            pass
+    time.sleep(0.3)
+    comm.Abort(code)
 
 
 def install() -> bool:

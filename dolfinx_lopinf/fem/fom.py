@@ -227,14 +227,11 @@ def _points(points, gdim: int):
 
 
 def _map_key(state_map):
-    """What identifies a state map across ranks (for :func:`agree`)."""
+    """What identifies a state map across ranks (for :func:`agree`): its dof order (exactly)
+    and its scales."""
     if not isinstance(state_map, StateMap):
         return state_map
-    order = np.asarray(state_map.order)
-    scale = np.asarray(state_map.scale, dtype=float)
-    if order.shape != scale.shape:
-        return (order, scale)
-    return np.vstack([order.astype(float), scale])  # one array: one digest in messages
+    return (np.asarray(state_map.order), np.asarray(state_map.scale, dtype=float))
 
 
 # -- input checks ---------------------------------------------------------------------------
