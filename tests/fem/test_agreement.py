@@ -204,6 +204,9 @@ def test_digest_tells_values_apart_but_not_rounding():
     swapped[[10, 11]] = swapped[[11, 10]]  # two rows exchanged
     assert not eq(a, swapped)
     assert not eq(0.001, 0.002) and eq(np.nan, float("nan"))
+    small = np.array([1.0, 1e-17, 3.0])  # small arrays: entry by entry, to 1e-10 of the largest
+    assert eq(small, np.array([1.0, -2e-17, 3.0 * (1 + 1e-15)]))
+    assert not eq(small, np.array([1.0, 1e-6, 3.0])) and not eq(small, small[:2].copy())
     assert eq({"ksp_type": "cg", "rtol": 1e-8}, {"rtol": 1e-8, "ksp_type": "cg"})
     assert not eq({"ksp_type": "cg"}, {"ksp_type": "gmres"})
     assert eq(np.int64(3), 3) and not eq(3, 3.0) and not eq(np.arange(5), np.arange(5)[::-1].copy())
