@@ -20,7 +20,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
-from . import errors
+from . import _mpi_abort, errors
 from .core import ddt, schemes
 from .core.basis import Basis, pod
 from .core.fit import ReducedModel, fit
@@ -34,6 +34,10 @@ from .core.selection import Choice, choose_r
 from .core.snapshots import Snapshots
 
 __version__ = "0.1.0"
+
+# Several MPI ranks: an exception left uncaught on one rank aborts the job instead of leaving
+# the others waiting forever in a collective (see dolfinx_lopinf._mpi_abort).
+_mpi_abort.install()
 
 _LAZY = {
     "LagrangianSystem": "fem.lagrangian",

@@ -57,6 +57,17 @@ class CheckpointMismatchError(InputError):
     """A checkpoint belongs to another run (its fingerprint differs from this run's)."""
 
 
+class RanksDisagreeError(InputError):
+    """On several MPI ranks, an argument that must be the same on every rank (a time step, a
+    number of steps, a basis) differs between them; raised on every rank, naming the
+    argument and each rank's value."""
+
+
+class OutOfSpaceError(LOpInfError, OSError):
+    """Not enough free disk space for a file about to be written; nothing was written (the
+    previous version of the file, if any, is untouched)."""
+
+
 class LOpInfWarning(UserWarning):
     """Base class of the package's warnings."""
 

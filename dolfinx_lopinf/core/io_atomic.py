@@ -9,6 +9,19 @@ temporary file is removed and the previous file is untouched. The final file get
 permissions a plain ``open(path, "w")`` would give it (``0o666 & ~umask``), or keeps the
 permissions of the file it replaces.
 
+A process killed while writing (SIGKILL, power loss) cannot remove its temporary file. Each
+temporary is therefore named after its target and its owner, ``.<target>.<host>-<pid>.<random>
+.tmp``, and the next write of the same target removes the temporaries of that target whose
+owner is gone (same host, no such process; :func:`stale_temporaries`). Temporaries without an
+owner tag (written by an older version) are removed once they are an hour old.
+
+Folders (a VTX ``.bp``) are replaced by :func:`swap_folder`: on Linux one
+``renameat2(RENAME_EXCHANGE)`` exchanges the new folder with the old one atomically, so the
+target is the old or the new version at every instant; where the file system cannot exchange,
+the old version is first renamed to ``.<target>.previous`` beside it, and
+:func:`recover_folder` (called before every replacement) puts it back if a kill came between
+the two renames.
+
     >>> import numpy as np
     >>> from dolfinx_lopinf.core.io_atomic import atomic_savez
     >>> path = atomic_savez("/tmp/example", K=np.eye(2))   # writes /tmp/example.npz
@@ -17,9 +30,14 @@ permissions of the file it replaces.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import errno
 import os
+import re
+import shutil
+import socket
 import tempfile
+import time
 import zipfile
 import zlib
 from pathlib import Path
@@ -30,7 +48,74 @@ import numpy as np
 from ..errors import FileFormatError
 
 __all__ = ["atomic_write", "atomic_savez", "atomic_savez_compressed", "atomic_write_text",
-           "atomic_write_bytes", "npz_path", "open_npz"]
+           "atomic_write_bytes", "npz_path", "open_npz", "stale_temporaries", "temporary_prefix",
+           "swap_folder", "recover_folder"]
+
+#: untagged temporaries (from a version without owner tags) older than this are stale (s)
+LEGACY_TEMPORARY_AGE = 3600.0
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:40] or "host"
+
+
+def temporary_prefix(name: str) -> str:
+    """The prefix of this process's temporaries for the target ``name``:
+    ``.<name>.<host>-<pid>.`` (a random part and ``.tmp`` follow)."""
+    return f".{name}.{_host()}-{os.getpid()}."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # it exists (another user's), or we cannot tell: keep its files
+    return True
+
+
+def stale_temporaries(directory, name: str) -> list[Path]:
+    """Temporaries of the target ``name`` in ``directory`` left by writers that are gone: owner
+    tag of this host and no such process, or no owner tag and older than
+    :data:`LEGACY_TEMPORARY_AGE`. Files and folders. (Another host's temporaries are left
+    alone: whether their writer lives cannot be told from here.)"""
+    directory = Path(directory)
+    tagged = re.compile(rf"^\.{re.escape(name)}\.(?P<host>[A-Za-z0-9_-]+)-(?P<pid>\d+)\.[^.]+\.tmp$")
+    legacy = re.compile(rf"^\.{re.escape(name)}\.[A-Za-z0-9_]{{6,12}}\.tmp$")
+    try:
+        entries = os.listdir(directory)
+    except OSError:
+        return []
+    host, now, out = _host(), time.time(), []
+    for entry in entries:
+        m = tagged.match(entry)
+        if m is not None:
+            if m["host"] == host and not _alive(int(m["pid"])):
+                out.append(directory / entry)
+        elif legacy.match(entry):
+            try:
+                if now - os.lstat(directory / entry).st_mtime > LEGACY_TEMPORARY_AGE:
+                    out.append(directory / entry)
+            except OSError:
+                pass
+    return out
+
+
+def remove_stale_temporaries(directory, name: str) -> int:
+    """Delete :func:`stale_temporaries`; returns the bytes freed (best effort, never raises)."""
+    freed = 0
+    for path in stale_temporaries(directory, name):
+        try:
+            if path.is_dir() and not path.is_symlink():
+                freed += sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                freed += path.stat().st_size
+                path.unlink()
+        except OSError:
+            pass
+    return freed
 
 
 def npz_path(path) -> Path:
@@ -89,7 +174,8 @@ def atomic_write(path, write: Callable, *, binary: bool = True) -> Path:
         mode = os.stat(path).st_mode & 0o7777
     except OSError:
         mode = 0o666 & ~_umask()
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=f".{path.name}.", suffix=".tmp")
+    remove_stale_temporaries(directory, path.name)  # of writes of this target that were killed
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=temporary_prefix(path.name), suffix=".tmp")
     try:
         with (os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8")) as f:
             write(f)
@@ -126,6 +212,67 @@ def atomic_write_bytes(path, data: bytes) -> Path:
 def atomic_write_text(path, text: str) -> Path:
     """``Path(path).write_text(text)`` (UTF-8), atomically; e.g. for JSON metrics."""
     return atomic_write(path, lambda f: f.write(text), binary=False)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Exchange the paths a and b atomically (Linux renameat2 RENAME_EXCHANGE). False when the
+    system or file system cannot (then nothing changed); OSError on any other failure."""
+    try:
+        renameat2 = ctypes.CDLL(None, use_errno=True).renameat2
+    except (AttributeError, OSError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    renameat2.restype = ctypes.c_int
+    if renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EPERM):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _previous(target: Path) -> Path:
+    return target.parent / f".{target.name}.previous"
+
+
+def recover_folder(target) -> str | None:
+    """Finish a :func:`swap_folder` that was killed: the previous version parked at
+    ``.<target>.previous`` goes back to ``target`` when ``target`` is missing, and is deleted
+    when ``target`` (the new version, complete) exists. Returns what was done, or None."""
+    target = Path(target)
+    previous = _previous(target)
+    if not previous.exists():
+        return None
+    if target.exists():
+        shutil.rmtree(previous, ignore_errors=True)
+        return f"removed {previous}, left by an interrupted replacement of {target}"
+    os.replace(previous, target)
+    return f"restored {target} from {previous}, left by an interrupted replacement"
+
+
+def swap_folder(new, target) -> None:
+    """Put the complete folder ``new`` at ``target`` (same file system). An existing
+    ``target`` is exchanged with ``new`` atomically where the system can (``new`` then holds
+    the old version, for the caller to delete); elsewhere it is parked at
+    ``.<target>.previous`` first, restored if the second rename fails, and deleted after -
+    recoverable by :func:`recover_folder` at every instant."""
+    new, target = Path(new), Path(target)
+    if not target.exists():
+        os.replace(new, target)
+    elif not _exchange(new, target):
+        previous = _previous(target)
+        os.replace(target, previous)
+        try:
+            os.replace(new, target)
+        except BaseException:
+            os.replace(previous, target)
+            raise
+        shutil.rmtree(previous, ignore_errors=True)
+    _fsync_dir(target.parent)
 
 
 _READ_ERRORS = (zipfile.BadZipFile, EOFError, ValueError, OSError, zlib.error, KeyError)

@@ -28,4 +28,8 @@ except ImportError as exc:  # pragma: no cover - exercised only without dolfinx
         "metrics) work without it."
     ) from exc
 
+from .._mpi_abort import install as _install_abort_hook
+
+_install_abort_hook()  # MPI is loaded now: the safety net of multi-rank runs (_mpi_abort)
+
 __all__ = ["MPI", "PETSc", "dolfinx", "ufl"]

@@ -16,20 +16,19 @@ gathered to rank 0 (other ranks get ``None``) - each rank only ever touches its 
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import re
 import time
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ._dolfinx import MPI, PETSc, dolfinx
-from ..errors import CheckpointMismatchError, FileFormatError, InputError
-from .integrators import MidpointIntegrator, _check_dt
+from ._dolfinx import MPI, dolfinx
+from ..errors import InputError
+from .agreement import agree, check, together
+from .checkpoint import (_FORMAT, _add_state_sketches, _checkpoint_files, _CheckpointFiles, _crc,
+                         _fingerprint, _resume)
+from .integrators import MidpointIntegrator, NewmarkIntegrator, _check_dt
 from ..core.io_atomic import atomic_savez
 from .lagrangian import LagrangianSystem
 from ..core.snapshots import Snapshots
@@ -78,7 +77,7 @@ class StateMap:
         key = np.round(X / scale, 10)
         perm = np.lexsort((key[:, 2], key[:, 1], key[:, 0]))
         if len(perm) > 1 and np.any(np.all(np.diff(key[perm], axis=0) == 0, axis=1)):
-            raise ValueError("several dofs share a coordinate (not a Lagrange-type space): pass "
+            raise InputError("several dofs share a coordinate (not a Lagrange-type space): pass "
                              "an explicit StateMap (see dolfinx_lopinf.scenes.beam for Hermite)")
         order = (G[perm][:, None] * bs + np.arange(bs)[None, :]).ravel()
         return cls(order, np.ones(len(order)), {})
@@ -135,6 +134,19 @@ def output_matrix_in_state(V, E_local: np.ndarray, state_map: StateMap) -> np.nd
     comm = V.mesh.comm
     imap = V.dofmap.index_map
     bs = V.dofmap.index_map_bs
+    n_local = (imap.size_local + imap.num_ghosts) * bs
+
+    def local():
+        E = np.asarray(E_local)
+        if E.ndim != 2 or E.shape[1] != n_local or E.dtype.kind not in "fiu":
+            raise InputError(f"E_local must be a real (p, n_local) array with n_local = {n_local} "
+                             f"on this rank (from point_output_matrix), got shape {E.shape}")
+        if not np.all(np.isfinite(E)):
+            raise InputError("E_local contains NaN or inf")
+        return E.shape[0]
+
+    p = check(comm, "output_matrix_in_state", local, state_map=_map_key(state_map))
+    agree(comm, "output_matrix_in_state", None, outputs=p)
     local_nodes = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
     glob = np.repeat(imap.local_to_global(local_nodes) * bs, bs) + np.tile(np.arange(bs), len(local_nodes))
     n = imap.size_global * bs
@@ -151,16 +163,26 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
 
     Built from ``Function.eval`` on unit dof vectors, so it is exact for any element.
     """
+    if not isinstance(V, dolfinx.fem.FunctionSpace):
+        raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
     msh = V.mesh
     comm = msh.comm
     bs = V.dofmap.index_map_bs
+    problem, points, comp = None, _points(points, msh.geometry.dim), None
+    if isinstance(points, str):
+        problem, points = points, None
     value_size = int(np.prod(V.value_shape)) if len(V.value_shape) else 1
-    if value_size > 1 and component is None:
-        raise ValueError(f"the space has {value_size} components: pass component=0..{value_size - 1}")
-    comp = 0 if component is None else int(component)
-    if not 0 <= comp < value_size:
-        raise ValueError(f"component must be in 0..{value_size - 1}, got {component}")
-    points = np.atleast_2d(np.asarray(points, dtype=float))
+    if problem is None and value_size > 1 and component is None:
+        problem = f"the space has {value_size} components: pass component=0..{value_size - 1}"
+    elif problem is None:
+        if component is not None and (isinstance(component, (bool, np.bool_))
+                                      or not isinstance(component, (int, np.integer))):
+            problem = f"component must be an integer in 0..{value_size - 1}, got {component!r}"
+        else:
+            comp = 0 if component is None else int(component)
+            if not 0 <= comp < value_size:
+                problem = f"component must be in 0..{value_size - 1}, got {component}"
+    agree(comm, "point_output_matrix", problem, points=points, component=comp)
     tree = dolfinx.geometry.bb_tree(msh, msh.topology.dim)
     candidates = dolfinx.geometry.compute_collisions_points(tree, points)
     colliding = dolfinx.geometry.compute_colliding_cells(msh, candidates, points)
@@ -171,7 +193,8 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
                       else comm.size for i in range(len(points))])
     owner = comm.allreduce(found, op=MPI.MIN)
     if np.any(owner == comm.size):
-        raise ValueError(f"points {points[owner == comm.size].tolist()} lie outside the mesh")
+        raise InputError(f"points {points[owner == comm.size].tolist()} lie outside the mesh "
+                         "(or on no owned cell of any rank): move them inside")
     probe = dolfinx.fem.Function(V)
     for i, point in enumerate(points):
         if owner[i] != comm.rank:
@@ -184,6 +207,31 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
                 probe.x.array[dof] = 1.0
                 E[i, dof] = probe.eval(point, np.array([cell], dtype=np.int32))[comp]
     return E
+
+
+def _points(points, gdim: int):
+    """Points as a finite (p, 3) array (columns beyond those given are 0), or a message."""
+    try:
+        P = np.asarray(points, dtype=float)
+    except (TypeError, ValueError):
+        return (f"points must be an array of coordinates (p, {gdim}) or (p, 3), got "
+                f"{type(points).__name__} {str(points)[:60]}")
+    if P.ndim == 1:
+        P = P[None, :]
+    if P.ndim != 2 or P.shape[0] == 0 or not gdim <= P.shape[1] <= 3:
+        return (f"points must have shape (p, {gdim}) or (p, 3) - one row of coordinates per "
+                f"point on this {gdim}-D mesh - got shape {np.shape(points)}")
+    if not np.all(np.isfinite(P)):
+        return f"points contain NaN or inf (rows {np.flatnonzero(~np.all(np.isfinite(P), axis=1)).tolist()})"
+    return np.hstack([P, np.zeros((P.shape[0], 3 - P.shape[1]))])
+
+
+def _map_key(state_map):
+    """What identifies a state map across ranks (for :func:`agree`): its dof order (exactly)
+    and its scales."""
+    if not isinstance(state_map, StateMap):
+        return state_map
+    return (np.asarray(state_map.order), np.asarray(state_map.scale, dtype=float))
 
 
 # -- input checks ---------------------------------------------------------------------------
@@ -204,248 +252,6 @@ def _count(value, name, minimum: int) -> int:
     if value < minimum:
         raise InputError(f"{name} must be >= {minimum}, got {value}")
     return int(value)
-
-
-def _collective(comm, problem, cls=InputError):
-    """Raise ``cls(problem)`` on every rank when any rank has a problem (same verdict
-    everywhere; one allgather)."""
-    if comm.size == 1:
-        if problem is not None:
-            raise cls(problem)
-        return
-    for p in comm.allgather(problem):
-        if p is not None:
-            raise cls(p)
-
-
-# -- checkpoints ----------------------------------------------------------------------------
-#
-# Per rank r and prefix P: two head files P.rank<r>.npz and P.rank<r>.b.npz written in turn
-# (the previous head stays valid while the next one is written, so the ranks can always agree
-# on a step all of them have), and append-only chunk files P.rank<r>.part<c>.npz holding what
-# was recorded between checkpoint c-1 and c (state and velocity columns, energies, outputs).
-# A head holds the integrator state (q, p, t, k), the run's fingerprint and a CRC of every
-# chunk it refers to. Each checkpoint writes one chunk and one head, each atomically.
-
-_FORMAT = "dolfinx_lopinf checkpoint 2"
-_CHUNK_KEYS = ("Q", "Vel", "energies", "energy_times", "ys", "y_times")
-
-
-def _crc(arrays: dict) -> int:
-    crc = 0
-    for key in _CHUNK_KEYS:
-        a = np.ascontiguousarray(arrays[key])
-        crc = zlib.crc32(repr((key, a.dtype.str, a.shape)).encode(), crc)
-        crc = zlib.crc32(a.view(np.uint8).reshape(-1) if a.size else b"", crc)
-    return crc
-
-
-class _CheckpointFiles:
-    """The files of one rank's checkpoint under a prefix."""
-
-    def __init__(self, prefix, rank: int):
-        prefix = Path(prefix)
-        self.dir = prefix.parent
-        self.base = f"{prefix.name}.rank{rank}"
-        self.heads = (self.dir / f"{self.base}.npz", self.dir / f"{self.base}.b.npz")
-
-    def chunk(self, c: int) -> Path:
-        return self.dir / f"{self.base}.part{c:05d}.npz"
-
-    def remedy(self) -> str:
-        return (f"delete the files {self.dir / self.base}*.npz, use another checkpoint prefix, "
-                "or pass checkpoint_restart=True to start the run over")
-
-    def existing(self) -> list[Path]:
-        pattern = re.compile(rf"^\.?{re.escape(self.base)}\.(npz|b\.npz|part\d+\.npz)(\..*\.tmp)?$")
-        try:
-            return [self.dir / n for n in os.listdir(self.dir) if pattern.match(n)]
-        except OSError:
-            return []
-
-    def remove_all(self):
-        for path in self.existing():
-            try:
-                path.unlink()
-            except OSError:
-                pass
-
-
-def _load_npz(path: Path, remedy: str) -> dict:
-    """Every array of an .npz, or FileFormatError naming the file and the remedy."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
-    except Exception as exc:  # BadZipFile, EOFError, zlib.error, ValueError, OSError, ...
-        raise FileFormatError(f"checkpoint file {path} is truncated or corrupt "
-                              f"({type(exc).__name__}: {exc}); {remedy}") from None
-
-
-def _probe_vectors(V):
-    """Two deterministic probe states (local arrays, owned + ghosts) that depend only on the
-    global dof numbers, and the owned rows' global numbers."""
-    imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
-    nodes = np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32)
-    g = (np.repeat(imap.local_to_global(nodes) * bs, bs) + np.tile(np.arange(bs), len(nodes))) \
-        .astype(float)
-    return 1e-3 * np.sin(1.3 * g + 0.1), 1e-3 * np.cos(0.77 * g + 0.2), g[: imap.size_local * bs]
-
-
-def _sketch(comm, owned: np.ndarray, g: np.ndarray) -> list:
-    """Four random projections and the squared norm of a distributed vector (allreduced):
-    equal vectors give equal sketches; any real change of the vector changes them."""
-    R = np.cos(np.outer(g, [0.7548776662, 0.5698402910, 0.3247179572, 0.2207440846]) + np.arange(4))
-    local = np.append(owned @ R, owned @ owned)
-    return [float(x) for x in comm.allreduce(local)]
-
-
-def _fingerprint(stepper, settings: dict, output_matrix, probe_times) -> dict:
-    """Everything that determines the trajectory: settings (exact), and sketches of the
-    assembled forms at probe states (mass/momentum, step residual and momentum, forcing at
-    two times, energy), the bcs' global dofs, the output matrix (compared with a tolerance)."""
-    system = stepper.system
-    V, comm = system.V, system.V.mesh.comm
-    fp = dict(settings)
-    a, b, g = _probe_vectors(V)
-    n_owned = len(g)
-    f = stepper.forms
-    saved = [(fn, fn.x.array.copy()) for fn in (f.q0, f.q1, system.q, system.q_t)]
-    saved_time = None if system.time is None else np.array(system.time.value, copy=True)
-    vec = fpetsc.create_vector(V)
-
-    def assembled(form):
-        with vec.localForm() as loc:
-            loc.set(0.0)
-        fpetsc.assemble_vector(vec, form)
-        vec.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        return _sketch(comm, vec.array[:n_owned], g)
-
-    try:
-        for fn, x in ((f.q0, a), (f.q1, b), (system.q, a), (system.q_t, b)):
-            fn.x.array[:] = x
-        fp["mass and momentum dL/dq_t at a probe state"] = assembled(stepper._momentum_at)
-        fp["energy at a probe state"] = [float(comm.allreduce(
-            dolfinx.fem.assemble_scalar(stepper._energy)))]
-        for t in probe_times:
-            stepper._set_time(t)
-            tag = f" (t = {t:.6g})" if system.time is not None else ""
-            fp[f"step residual at a probe state{tag} (stiffness, potential, forcing)"] = \
-                assembled(stepper._residual)
-            fp[f"step momentum at a probe state{tag}"] = assembled(stepper._momentum)
-            if system.forcing is not None:
-                fp[f"forcing at a probe state{tag}"] = assembled(dolfinx.fem.form(system.forcing))
-            if system.time is None:
-                break
-    finally:
-        for fn, x in saved:
-            fn.x.array[:] = x
-        if saved_time is not None:
-            system.time.value = saved_time
-        vec.destroy()
-    # Dirichlet conditions: the sorted global numbers of the constrained dofs
-    bs = V.dofmap.index_map_bs
-    owned_bc = stepper._bc_dofs[stepper._bc_dofs_owned_mask]
-    glob = V.dofmap.index_map.local_to_global((owned_bc // bs).astype(np.int32)) * bs + owned_bc % bs
-    all_bc = np.sort(np.concatenate(comm.allgather(np.asarray(glob, dtype=np.int64))))
-    fp["Dirichlet dofs (global numbers)"] = f"{len(all_bc)} dofs, sha256 " + \
-        hashlib.sha256(all_bc.tobytes()).hexdigest()[:16]
-    if output_matrix is not None:
-        E = np.asarray(output_matrix, dtype=float)
-        fp["output matrix"] = [float(x) for x in comm.allreduce(
-            np.concatenate([E @ a, E @ b]))] + [float(E.shape[0])]
-    return fp
-
-
-def _add_state_sketches(fp: dict, stepper) -> None:
-    system = stepper.system
-    comm = system.V.mesh.comm
-    g = _probe_vectors(system.V)[2]
-    n_owned = len(g)
-    fp["initial state q0 (after the bcs)"] = _sketch(comm, stepper.q.x.array[:n_owned], g)
-    fp["initial velocity v0 (after the bcs)"] = _sketch(comm, system.q_t.x.array[:n_owned], g)
-
-
-def _differences(stored: dict, current: dict, n_global: int) -> list[str]:
-    out = []
-    for key in sorted(set(stored) | set(current)):
-        old, new = stored.get(key), current.get(key)
-        if key not in stored or key not in current:
-            out.append(f"{key}: {'absent' if old is None else old!r} in the checkpoint, "
-                       f"{'absent' if new is None else new!r} in this run")
-        elif isinstance(old, list) and isinstance(new, list) and len(old) == len(new):
-            o, n = np.array(old, dtype=float), np.array(new, dtype=float)
-            # sketch entries: equal up to rounding (the same run reproduces them bit for bit;
-            # the tolerance only keeps a harmless last-bit difference from refusing a resume)
-            scale = np.sqrt(abs(o[-1])) + np.sqrt(abs(n[-1])) if len(o) == 5 else np.abs(o).max()
-            tol = 1e-9 * max(scale * np.sqrt(max(n_global, 1)), np.abs(o).max(initial=0.0), 1e-300)
-            same = np.all((np.abs(o - n) <= tol) | (np.isnan(o) & np.isnan(n)))
-            if not same:
-                rel = float(np.nanmax(np.abs(o - n)) / max(np.nanmax(np.abs(o)), 1e-300))
-                out.append(f"{key} (differs by {rel:.2g} relative)")
-        elif old != new:
-            out.append(f"{key}: {old!r} in the checkpoint, {new!r} in this run")
-    return out
-
-
-def _resume(files: _CheckpointFiles, comm, fingerprint: dict, n_global: int):
-    """Read this rank's newest head that every rank has, check its fingerprint, load its
-    chunks. Collective: every rank returns the same kind of answer or raises the same error.
-    Returns None (no checkpoint: start from step 0) or (head, chunks)."""
-    heads, problem = {}, None
-    for path in files.heads:
-        if path.exists():
-            try:
-                data = _load_npz(path, files.remedy())
-                if str(data.get("format", "")) != _FORMAT or "k" not in data:
-                    raise FileFormatError(f"{path} is not a checkpoint of this version of "
-                                          f"dolfinx_lopinf (no '{_FORMAT}' header); "
-                                          f"{files.remedy()}")
-                heads[int(data["k"])] = (path, data)
-            except FileFormatError as exc:
-                problem = problem or str(exc)
-    _collective(comm, problem, FileFormatError)
-    steps = comm.allgather(sorted(heads))
-    if not any(steps):
-        return None
-    common = set(steps[0]).intersection(*map(set, steps[1:]))
-    if not common:
-        missing = [r for r, s in enumerate(steps) if not s]
-        raise CheckpointMismatchError(
-            f"the checkpoint under prefix {files.dir / files.base.rsplit('.rank', 1)[0]} is "
-            f"incomplete: ranks {missing or 'all'} have no head at a step the others have "
-            f"(steps per rank: {steps}); it comes from a run on another number of ranks or was "
-            f"left by another run. {files.remedy()}")
-    k = max(common)
-    path, head = heads[k]
-    try:
-        stored = json.loads(str(head["fingerprint"]))
-    except (KeyError, ValueError) as exc:
-        stored, problem = {}, f"checkpoint file {path} has no readable fingerprint ({exc})"
-    _collective(comm, problem, FileFormatError)
-    diffs = _differences(stored, fingerprint, n_global)
-    all_diffs = comm.allgather(diffs) if comm.size > 1 else [diffs]
-    union = list(dict.fromkeys(d for ds in all_diffs for d in ds))
-    if union:
-        raise CheckpointMismatchError(
-            f"checkpoint {path} belongs to another run, so resuming it would silently continue "
-            "that run's trajectory. What differs: " + "; ".join(union) + f". {files.remedy()}")
-    chunks, problem = [], None
-    crcs = np.asarray(head["chunk_crc"], dtype=np.int64)
-    for c in range(int(head["n_chunks"])):
-        try:
-            data = _load_npz(files.chunk(c), files.remedy())
-            if any(key not in data for key in _CHUNK_KEYS) or _crc(data) != int(crcs[c]):
-                raise FileFormatError(f"checkpoint chunk {files.chunk(c)} does not match its head "
-                                      f"{path} (checksum); {files.remedy()}")
-            chunks.append(data)
-        except FileNotFoundError:
-            problem = problem or f"checkpoint chunk {files.chunk(c)} is missing; {files.remedy()}"
-            break
-        except FileFormatError as exc:
-            problem = problem or str(exc)
-            break
-    _collective(comm, problem, FileFormatError)
-    return head, chunks
 
 
 # -- the time loop ---------------------------------------------------------------------------
@@ -727,35 +533,106 @@ def run_loop(integrator, n_steps: int, sinks=(), *, inputs=None, first_step: int
 
     Returns:
         ``{"seconds": wall time of the loop (max over ranks), "steps": n_steps}``.
+
+    Collective: the arguments are checked on every rank and agreed on (n_steps, first_step,
+    the kinds of sinks, whether there are inputs, the integrator's dt and t must be the same
+    on every rank; the same error on every rank otherwise), the integrator must be open and
+    initialised. With inputs, their values are compared at every step (one small allgather;
+    on one rank nothing). A sink or input function that raises on one rank only aborts the
+    job (the other ranks are inside the next step's solve; see
+    :mod:`dolfinx_lopinf.fem.agreement`).
     """
     for name in ("step", "velocity", "energy", "dt", "q"):
         if not hasattr(integrator, name):
             raise InputError(f"run needs an Integrator (midpoint or Newmark, see "
                              f"dolfinx_lopinf.fem.integrators) or a LagrangianSystem, got "
                              f"{type(integrator).__name__} (no '{name}')")
-    n_steps = _count(n_steps, "n_steps", 0)
-    first_step = _count(first_step, "first_step", 1)
-    sinks = [s if isinstance(s, Sink) else Every(s) for s in sinks]
     comm = integrator.q.function_space.mesh.comm
+    loop, problem = None, None
+    try:
+        loop = _loop_plan(integrator, n_steps, sinks, inputs, first_step)
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it
+        problem = exc
+    agree(comm, "run", problem, **({} if loop is None else loop.pop("settings")))
+    n_steps, first_step, sinks = loop["n_steps"], loop["first_step"], loop["sinks"]
     state = LoopState(integrator, n_steps, comm)
     dt = integrator.dt
     t_begin = integrator.t - (first_step - 1) * dt
     state.k = first_step - 1
-    if first_step == 1:
-        for sink in sinks:
-            sink.start(state)
-    for k in range(first_step, n_steps + 1):
-        if inputs is None:
-            integrator.step()
-        else:
-            integrator.step(inputs(t_begin + k * dt))
-        state.k = k
-        for sink in sinks:
-            sink.after(state)
+    if loop["agreed"]:
+        integrator._agreed_loop = True  # every rank steps without values: no per-step check
+    try:
+        with together(comm, "run (the time loop: steps, inputs and sinks)"):
+            if first_step == 1:
+                for sink in sinks:
+                    sink.start(state)
+            for k in range(first_step, n_steps + 1):
+                if inputs is None:
+                    integrator.step()
+                else:
+                    integrator.step(inputs(t_begin + k * dt))
+                state.k = k
+                for sink in sinks:
+                    sink.after(state)
+    finally:
+        if loop["agreed"]:
+            integrator._agreed_loop = False
     seconds = comm.allreduce(time.perf_counter() - state.t_loop_start, op=MPI.MAX)
-    for sink in sinks:
-        sink.finish(state)
+    with together(comm, "run (the sinks' finish)"):
+        for sink in sinks:
+            sink.finish(state)
     return {"seconds": seconds, "steps": n_steps}
+
+
+def _loop_plan(integrator, n_steps, sinks, inputs, first_step) -> dict:
+    """:func:`run_loop`'s checks on this rank alone (raises; no collective): the counts, the
+    sinks as :class:`Sink` objects, the step function to call, the settings every rank must
+    share."""
+    n_steps = _count(n_steps, "n_steps", 0)
+    first_step = _count(first_step, "first_step", 1)
+    if isinstance(sinks, (Sink, str, bytes)) or callable(sinks) or not hasattr(sinks, "__iter__"):
+        raise InputError(f"sinks must be a list of Sink objects or callables f(state), got "
+                         f"{type(sinks).__name__}; wrap a single sink in a list: sinks=[sink]")
+    sinks = list(sinks)
+    for i, s in enumerate(sinks):
+        if not isinstance(s, Sink) and not callable(s):
+            raise InputError(f"sinks[{i}] = {s!r} is neither a Sink (StateRecorder, OutputProbe, "
+                             "EnergyProbe, FieldSnapshots, Every, ...) nor a callable f(state) "
+                             "called at every step; pass one of those")
+    sinks = [s if isinstance(s, Sink) else Every(s) for s in sinks]
+    if inputs is not None and not callable(inputs):
+        raise InputError(f"inputs must be a callable inputs(t) -> input values (or None), got "
+                         f"{type(inputs).__name__}")
+    name = type(integrator).__name__
+    if getattr(integrator, "closed", False):
+        raise InputError(f"the {name} was closed (close() or the end of its with block) and its "
+                         "PETSc objects destroyed; make a new one")
+    if not getattr(integrator, "initialized", True):
+        raise InputError(f"the {name} was never initialised: it would step from zero and "
+                         "record zeros. Call integrator.initialize(...) before run(integrator, "
+                         "n_steps) (run(system, q0, v0, dt, t_end) does it for you)")
+    agreed = False  # True: the integrator's step need not agree on its arguments every step
+    if isinstance(integrator, MidpointIntegrator):
+        if inputs is not None:
+            raise InputError("a MidpointIntegrator takes no input values (inputs= is for "
+                             "schemes with input channels, e.g. Newmark): put the forcing into "
+                             "the LagrangianSystem (forcing=..., time=...)")
+        agreed = True
+    elif isinstance(integrator, NewmarkIntegrator):
+        if integrator.inputs and inputs is None:
+            raise InputError(f"this NewmarkIntegrator has {len(integrator.inputs)} input "
+                             "channel(s): pass inputs=lambda t: values")
+        if not integrator.inputs and inputs is not None:
+            raise InputError("this NewmarkIntegrator has no input forms: drop inputs= (or build "
+                             "it with input_forms=...)")
+        agreed = inputs is None  # with inputs, their values are compared at every step
+    # a progress bar on rank 0 only is fine (no collective); every other sink must be on all
+    settings = {"n_steps": n_steps, "first_step": first_step,
+                "sinks": [type(s).__name__ for s in sinks if not isinstance(s, Progress)],
+                "inputs": inputs is not None,
+                "integrator": name, "dt": float(integrator.dt), "t": float(integrator.t)}
+    return {"n_steps": n_steps, "first_step": first_step, "sinks": sinks, "agreed": agreed,
+            "settings": settings}
 
 
 # -- the FOM run of a LagrangianSystem: the time loop with the recorder's sinks -------------
@@ -774,26 +651,30 @@ def _check_state_map(state_map, n_global: int) -> None:
         raise InputError("state_map.scale must be finite and nonzero")
 
 
-def _checkpoint_files(checkpoint, comm) -> _CheckpointFiles:
-    """This rank's checkpoint files under the prefix (collective check of its directory)."""
-    prefix = Path(checkpoint)
-    directory = prefix.parent
-    problem = None
-    if not directory.is_dir():
-        problem = (f"checkpoint = {str(checkpoint)!r}: the directory {directory} does not exist "
-                   "(create it first)")
-    elif not os.access(directory, os.W_OK | os.X_OK):
-        problem = f"checkpoint = {str(checkpoint)!r}: the directory {directory} is not writable"
-    _collective(comm, problem)
-    return _CheckpointFiles(prefix, comm.rank)
-
-
 def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map, energy_every,
-          energy_until, integrator, checkpoint, checkpoint_every) -> dict:
-    """Every input of :func:`run` checked before any work (all ranks reach the same verdict);
-    returns the derived step counts and sizes."""
+          energy_until, integrator, checkpoint, checkpoint_every, record_velocity,
+          checkpoint_restart) -> dict:
+    """Every input of :func:`run` checked before any work: on each rank, then one collective
+    verdict (:func:`~dolfinx_lopinf.fem.agreement.agree`) - the same error on every rank, also
+    when the ranks passed different settings. Returns the derived step counts and sizes."""
     if not isinstance(system, LagrangianSystem):
         raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
+    comm = system.V.mesh.comm
+    plan, problem = None, None
+    try:
+        plan = _plan_local(system, dt, t_end, record_every, state_until, output_matrix, state_map,
+                           energy_every, energy_until, integrator, checkpoint, checkpoint_every,
+                           record_velocity, checkpoint_restart)
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it
+        problem = exc
+    agree(comm, "run", problem, **({} if plan is None else plan.pop("settings")))
+    return plan
+
+
+def _plan_local(system, dt, t_end, record_every, state_until, output_matrix, state_map,
+                energy_every, energy_until, integrator, checkpoint, checkpoint_every,
+                record_velocity, checkpoint_restart) -> dict:
+    """:func:`_plan` on this rank alone (raises on a bad value; no collective)."""
     dt = _check_dt(dt)
     t_end = _number(t_end, "t_end")
     if t_end <= 0:
@@ -830,30 +711,45 @@ def _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map
     n_owned = imap.size_local * bs
     n_local = (imap.size_local + imap.num_ghosts) * bs
     n_global = imap.size_global * bs
-    problem = None
+    p_out = None
     if output_matrix is not None:
         E = np.asarray(output_matrix)
         if E.ndim != 2 or E.shape[1] != n_local or not np.issubdtype(E.dtype, np.floating):
-            problem = (f"output_matrix must be a real (p, n_local) array with n_local = {n_local} "
-                       f"on this rank (from point_output_matrix), got shape {E.shape}, {E.dtype}")
-        elif not np.all(np.isfinite(E)):
-            problem = "output_matrix contains NaN or inf"
-    _collective(comm, problem)
+            raise InputError(f"output_matrix must be a real (p, n_local) array with n_local = "
+                             f"{n_local} on this rank (from point_output_matrix), got shape "
+                             f"{E.shape}, {E.dtype}")
+        if not np.all(np.isfinite(E)):
+            raise InputError("output_matrix contains NaN or inf")
+        p_out = E.shape[0]
     if state_map is not None:
         _check_state_map(state_map, n_global)
     if integrator is not None:
         if not isinstance(integrator, MidpointIntegrator) or integrator.system is not system:
             raise InputError("integrator must be a MidpointIntegrator of this same system")
+        if integrator.closed:
+            raise InputError("integrator was closed (close() or the end of its with block): "
+                             "pass an open one, or none (run makes its own)")
         if abs(integrator.dt - dt) > 1e-15 * dt:
             raise InputError(f"the integrator's dt = {integrator.dt} differs from dt = {dt}")
     files = None
     if checkpoint is not None:
         checkpoint_every = _count(checkpoint_every, "checkpoint_every", 1)
-        files = _checkpoint_files(checkpoint, comm)
+        files = _checkpoint_files(checkpoint, comm.rank)
+    for name, flag in (("record_velocity", record_velocity), ("checkpoint_restart", checkpoint_restart)):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise InputError(f"{name} must be True or False, got {flag!r}")
+    # what every rank must have passed alike (the checkpoint prefix may differ: node-local disks)
+    settings = {"dt": dt, "t_end": t_end, "record_every": record_every, "state_until": state_until,
+                "energy_every": energy_every, "energy_until": energy_until,
+                "output_matrix rows": p_out, "state_map": _map_key(state_map),
+                "record_velocity": bool(record_velocity), "integrator": integrator is not None,
+                "checkpoint": checkpoint is not None,
+                "checkpoint_every": checkpoint_every if checkpoint is not None else None,
+                "checkpoint_restart": bool(checkpoint_restart)}
     return dict(dt=dt, t_end=t_end, n_steps=n_steps, record_every=record_every,
                 n_state_steps=n_state_steps, n_energy_steps=n_energy_steps,
                 energy_every=energy_every, n_owned=n_owned, n_global=n_global, files=files,
-                checkpoint_every=checkpoint_every)
+                checkpoint_every=checkpoint_every, settings=settings)
 
 
 def run(system, *args, **kwargs):
@@ -880,7 +776,13 @@ def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, rec
     """Integrate the FOM and record snapshots.
 
     Every argument is checked before the first step (all ranks reach the same verdict);
-    bad values raise :class:`~dolfinx_lopinf.errors.InputError` naming the argument.
+    bad values raise :class:`~dolfinx_lopinf.errors.InputError` naming the argument, on every
+    rank, also when only one rank has them. On several ranks dt, t_end, record_every,
+    state_until, energy_every, energy_until, record_velocity, the state map, the number of
+    outputs and the checkpoint settings must be the same on every rank (else
+    :class:`~dolfinx_lopinf.errors.RanksDisagreeError` on every rank, naming each rank's value;
+    the checkpoint prefix may differ, e.g. node-local disks). An exception on one rank alone
+    during the run aborts the job instead of hanging (:mod:`dolfinx_lopinf.fem.agreement`).
 
     Args:
         system: the Lagrangian system.
@@ -927,12 +829,14 @@ def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, rec
         wrote to checkpoint files) and ``checkpoint_seconds`` (time spent writing them).
     """
     plan = _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map,
-                 energy_every, energy_until, integrator, checkpoint, checkpoint_every)
+                 energy_every, energy_until, integrator, checkpoint, checkpoint_every,
+                 record_velocity, checkpoint_restart)
     state_map = StateMap.from_coordinates(system.V) if state_map is None else state_map
     stepper = integrator if integrator is not None else MidpointIntegrator(system, plan["dt"])
     try:
-        return _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map,
-                             record_velocity, progress, checkpoint_restart)
+        with together(system.V.mesh.comm, "run"):
+            return _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map,
+                                 record_velocity, progress, checkpoint_restart)
     finally:
         if integrator is None:
             stepper.close()

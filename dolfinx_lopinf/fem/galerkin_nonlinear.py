@@ -39,7 +39,8 @@ from ._dolfinx import MPI, dolfinx, ufl
 from ..core._checks import check_positive
 from ..core.hyper import nnls_tolerance
 from ..errors import InputError
-from .fom import StateMap
+from .agreement import agree
+from .fom import StateMap, _map_key
 
 
 @dataclass(frozen=True)
@@ -115,9 +116,13 @@ class _Lift:
             raise InputError(f"state_map must be a StateMap, got {type(state_map).__name__}")
         n = len(state_map.order)
         basis = np.asarray(basis, dtype=float)
-        if basis.ndim != 2 or basis.shape[0] != n or not np.all(np.isfinite(basis)):
+        if basis.ndim != 2 or basis.shape[0] != n:
             raise InputError(f"basis must be a finite (n, r) array with n = {n} state rows (on "
                              f"every rank), got shape {basis.shape}")
+        if not np.all(np.isfinite(basis)):
+            bad = np.argwhere(~np.isfinite(basis))
+            raise InputError(f"basis contains {len(bad)} NaN/inf entries (first at row "
+                             f"{bad[0][0]}, column {bad[0][1]})")
         self.W = np.ascontiguousarray(state_map.to_local_dofs(V, basis))  # (local dofs, r)
         if u0 is None:
             self.u0 = np.zeros(len(self.W))
@@ -136,6 +141,34 @@ class _Lift:
             fun.x.array[rows] = self.u0[rows] + self.W[rows] @ q
 
 
+def _sampling_key(sampling):
+    if isinstance(sampling, CellSampling):
+        return (np.asarray(sampling.cells), np.asarray(sampling.weights, dtype=float),
+                sampling.n_cells)
+    return sampling
+
+
+def _agreed_lift(where, energy, V, basis, state_map, u0, extra=None, **settings):
+    """The energy's integrals and the lift u = u0 + W q, checked on this rank and then agreed
+    on by every rank (the same error everywhere; the basis, u0 and ``settings`` equal on every
+    rank). ``extra(r)``: a further check whose result is returned (and agreed on) too."""
+    comm = V.mesh.comm
+    out, problem = None, None
+    try:
+        integrals = _cell_integrals(energy)
+        lift = _Lift(V, basis, state_map, u0)
+        out = (integrals, lift) if extra is None else (integrals, lift, extra(lift.r))
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it
+        problem = exc
+    if problem is None:
+        settings.update(basis=np.asarray(basis, dtype=float), state_map=_map_key(state_map),
+                        u0=None if u0 is None else np.asarray(u0, dtype=float))
+        if extra is not None:
+            settings["Qh"] = out[2]
+    agree(comm, where, problem, **(settings if problem is None else {}))
+    return out
+
+
 class GalerkinForce:
     """f_r(q) = V^T f(u0 + V q), J_r(q) = V^T K_t V, U_r(q) = U(u0 + V q) assembled by DOLFINx
     (see the module docstring); with ``sampling`` the ECSW-weighted sums over its cells.
@@ -148,13 +181,13 @@ class GalerkinForce:
     """
 
     def __init__(self, energy, u, basis, state_map: StateMap, *, u0=None, sampling=None):
-        integrals = _cell_integrals(energy)
         if not isinstance(u, dolfinx.fem.Function):
             raise InputError(f"u must be a dolfinx Function, got {type(u).__name__}")
         V = u.function_space
         msh = V.mesh
         self.comm = msh.comm
-        self._lift = _Lift(V, basis, state_map, u0)
+        integrals, self._lift = _agreed_lift("GalerkinForce", energy, V, basis, state_map, u0,
+                                             sampling=_sampling_key(sampling))
         self.r = self._lift.r
         self._u = dolfinx.fem.Function(V)
         self.sampling = sampling
@@ -247,9 +280,14 @@ class GalerkinForce:
 
     def value(self, Q) -> np.ndarray:
         """U_r at the columns of Q (r, N) (or one q: a float)."""
-        Q = np.asarray(Q, dtype=float)
-        one = Q.ndim == 1
-        Q = Q.reshape(self.r, -1)
+        problem = None
+        try:
+            Q = np.asarray(Q, dtype=float)
+            one = Q.ndim == 1
+            Q = Q.reshape(self.r, -1)
+        except (TypeError, ValueError):
+            problem, Q, one = f"Q must be an (r = {self.r}, N) array of numbers", None, False
+        agree(self.comm, "GalerkinForce.value", problem, **({} if problem else {"Q": Q}))
         out = np.empty(Q.shape[1])
         for j in range(Q.shape[1]):
             if not np.all(np.isfinite(Q[:, j])):
@@ -262,31 +300,51 @@ class GalerkinForce:
 
     def gradient(self, Q) -> np.ndarray:
         """f_r at the columns of Q (r, N) (or one q)."""
-        Q = np.asarray(Q, dtype=float)
+        problem = None
+        try:
+            Q = np.asarray(Q, dtype=float)
+        except (TypeError, ValueError):
+            problem = f"Q must be an (r = {self.r}, N) array of numbers or one q (r,)"
+        if problem is None and (Q.ndim not in (1, 2) or Q.shape[0] != self.r):
+            problem = f"Q must be an (r = {self.r}, N) array or one q (r,), got shape {Q.shape}"
+        agree(self.comm, "GalerkinForce.gradient", problem, **({} if problem else {"Q": Q}))
         if Q.ndim == 1:
             return self.force(Q)
+        if Q.shape[1] == 0:
+            return np.zeros((self.r, 0))
         return np.column_stack([self.force(Q[:, j]) for j in range(Q.shape[1])])
 
     def _check(self, q):
-        q = np.asarray(q, dtype=float).reshape(-1)
-        if q.shape != (self.r,):
-            raise InputError(f"q must have r = {self.r} entries, got shape {q.shape}")
+        """q as (r,) floats, the same on every rank (else the same error on every rank: each
+        rank assembles its part at its own q)."""
+        problem = None
+        try:
+            q = np.asarray(q, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            problem, q = f"q must be r = {self.r} numbers, got {type(q).__name__}", None
+        if problem is None and q.shape != (self.r,):
+            problem = f"q must have r = {self.r} entries, got shape {q.shape}"
+        agree(self.comm, "GalerkinForce", problem, **({} if problem else {"q": q}))
         return q
 
 
 def cell_force_matrix(energy, u, basis, state_map: StateMap, Qh, *, u0=None):
     """G[(k, a), e] = V_a^T f_e(u0 + V q_k) for the owned cells of this rank: returns
     (G_local (K r, n_owned_cells), canonical numbers of those cells)."""
-    integrals = _cell_integrals(energy)
     if not isinstance(u, dolfinx.fem.Function):
         raise InputError(f"u must be a dolfinx Function, got {type(u).__name__}")
     V = u.function_space
     msh = V.mesh
-    lift = _Lift(V, basis, state_map, u0)
-    Qh = np.asarray(Qh, dtype=float)
-    if Qh.ndim != 2 or Qh.shape[0] != lift.r or not np.all(np.isfinite(Qh)):
-        raise InputError(f"Qh must be a finite (r = {lift.r}, K) array of reduced training states, "
-                         f"got shape {Qh.shape}")
+
+    def training(r):
+        Q = np.asarray(Qh, dtype=float)
+        if Q.ndim != 2 or Q.shape[0] != r or not np.all(np.isfinite(Q)):
+            raise InputError(f"Qh must be a finite (r = {r}, K) array of reduced training "
+                             f"states, got shape {Q.shape}")
+        return Q
+
+    integrals, lift, Qh = _agreed_lift("cell_force_matrix", energy, V, basis, state_map, u0,
+                                       extra=training)
     uw, phi = dolfinx.fem.Function(V), dolfinx.fem.Function(V)
     D = dolfinx.fem.functionspace(msh, ("DG", 0))
     psi = ufl.TestFunction(D)
@@ -313,7 +371,18 @@ def ecsw_sampling(energy, u, basis, state_map: StateMap, Qh, *, u0=None, tol: fl
     """ECSW cells and weights fitting the reduced force at the training states Qh (r, K)
     to relative residual ``tol`` (see the module docstring). Collective; the same sampling
     (canonical cell numbers) on every rank and for any number of ranks."""
-    tol = check_positive(tol, "tol")
+    problem = None
+    try:
+        tol = check_positive(tol, "tol")
+        if max_cells is not None and (isinstance(max_cells, bool) or not isinstance(max_cells, (int, np.integer))
+                                      or max_cells < 1):
+            raise InputError(f"max_cells must be an integer >= 1 or None, got {max_cells!r}")
+    except InputError as exc:
+        problem = exc
+    if isinstance(u, dolfinx.fem.Function):
+        agree(u.function_space.mesh.comm, "ecsw_sampling", problem, tol=tol, max_cells=max_cells)
+    elif problem is not None:
+        raise problem
     t0 = time.perf_counter()
     G_local, canon = cell_force_matrix(energy, u, basis, state_map, Qh, u0=u0)
     comm = u.function_space.mesh.comm

@@ -37,6 +37,7 @@ import numpy as np
 
 from ._dolfinx import MPI, PETSc, dolfinx, ufl
 from ..errors import InputCorrectedWarning, InputError, StepFailedError
+from .agreement import RTOL, agree, check
 from .lagrangian import LagrangianSystem, _on_space
 
 fem = dolfinx.fem
@@ -105,13 +106,41 @@ class Integrator(Protocol):
 
 
 class _Closing:
-    """Context-manager support: ``with Integrator(...) as it: ...`` closes on exit."""
+    """Context-manager support (``with Integrator(...) as it: ...`` closes on exit) and the
+    life-cycle checks: a closed integrator, or one never initialised, refuses to step."""
+
+    closed = False
+    initialized = False
+    _agreed_loop = False  # set by the time loop, which agreed on the step arguments at its entry
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
         self.close()
+
+    def _open_problem(self, what: str) -> str | None:
+        if self.closed:
+            return (f"{type(self).__name__}.{what}: the integrator was closed (close() or the end "
+                    "of its with block) and its PETSc objects destroyed; make a new one")
+        return None
+
+    def _check_open(self, what: str) -> None:
+        """Refuse a closed integrator (a state every rank shares: close() is collective)."""
+        problem = self._open_problem(what)
+        if problem is not None:
+            raise InputError(problem)
+
+    def _step_problem(self, u, takes_inputs: bool) -> str | None:
+        problem = self._open_problem("step")
+        if problem is None and not self.initialized:
+            problem = (f"{type(self).__name__}.step: the integrator was never initialised - it "
+                       "would step from q = 0, p = 0 and return zeros; call initialize(...) first "
+                       "(run(system, q0, v0, ...) does it for you)")
+        if problem is None and u is not None and not takes_inputs:
+            problem = ("MidpointIntegrator.step takes no input values: put the forcing into the "
+                       "LagrangianSystem (forcing=..., time=...)")
+        return problem
 
 
 def _direct_solver(A, comm, prefix: str, options: dict | None, *, spd: bool = False):
@@ -152,12 +181,10 @@ def _check_dt(dt, what="dt"):
     return float(dt)
 
 
-def _raise_collective(comm, message):
-    """Raise InputError on every rank if any rank has a message (one allgather)."""
-    messages = comm.allgather(message)
-    for m in messages:
-        if m is not None:
-            raise InputError(m)
+def _check_options(options):
+    if options is not None and not isinstance(options, dict):
+        raise InputError(f"petsc_options must be a dict of PETSc options, got {type(options).__name__}")
+    return options
 
 
 def _check_mass(M, bc_dofs, comm):
@@ -218,12 +245,14 @@ class MidpointIntegrator(_Closing):
                  prefix: str | None = None):
         if not isinstance(system, LagrangianSystem):
             raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
-        dt = _check_dt(dt)
+        V, comm = system.V, system.V.mesh.comm
+        dt = check(comm, "MidpointIntegrator", lambda: (_check_dt(dt), _check_options(petsc_options))[0])
+        agree(comm, "MidpointIntegrator", None, dt=dt, petsc_options=petsc_options)
         prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
         self.system, self.dt, self.prefix = system, float(dt), prefix
+        self._comm = comm
         self._snes = self._ksp = None
         self._pending_options = []
-        V, comm = system.V, system.V.mesh.comm
         _check_homogeneous(system.bcs, V)
         self.forms = f = system.step_forms(self.dt)
         self.q = fem.Function(V, name="q")
@@ -314,8 +343,16 @@ class MidpointIntegrator(_Closing):
         """
         sysm = self.system
         comm = sysm.V.mesh.comm
-        arrays, problem = [], None
+        arrays, problem = [], self._open_problem("initialize")
+        try:
+            t0 = float(t0)
+        except (TypeError, ValueError):
+            t0 = float("nan")
+        if problem is None and not np.isfinite(t0):
+            problem = "t0 must be a finite number"
         for target, value, name in ((sysm.q, q0, "q0"), (sysm.q_t, v0, "v0")):
+            if self.closed:
+                break
             if isinstance(value, fem.Function):
                 if not _on_space(value, sysm.V):
                     problem = problem or (f"{name} is a Function on another function space or mesh "
@@ -335,10 +372,7 @@ class MidpointIntegrator(_Closing):
             elif not np.all(np.isfinite(arr)):
                 problem = problem or f"{name} contains NaN or inf"
             arrays.append(arr)
-        if comm.size > 1:
-            _raise_collective(comm, problem)
-        elif problem is not None:
-            raise InputError(problem)
+        agree(comm, "MidpointIntegrator.initialize", problem, t0=t0)
         dofs = self._bc_dofs
         for target, arr, name in ((sysm.q, arrays[0], "q0"), (sysm.q_t, arrays[1], "v0")):
             target.x.array[:] = arr
@@ -360,6 +394,7 @@ class MidpointIntegrator(_Closing):
         self._zero_bc_rows(self.p)
         self.t = float(t0)
         self.steps_taken = 0
+        self.initialized = True
 
     @property
     def mass_matrix(self) -> "PETSc.Mat":
@@ -370,10 +405,11 @@ class MidpointIntegrator(_Closing):
     def advance(self, q0: np.ndarray, p0: PETSc.Vec):
         """Black-box step: from (q0 local dofs, p0 PETSc Vec) return (q1 array, p1 Vec) copies,
         leaving the integrator's own state untouched."""
+        self._check_open("advance")
         saved_q, saved_p, saved_t = self.q.x.array.copy(), self.p.copy(), self.t
         self.q.x.array[:] = q0
         p0.copy(self.p)
-        self.step()
+        self._step_agreed()
         out = self.q.x.array.copy(), self.p.copy()
         self.q.x.array[:] = saved_q
         saved_p.copy(self.p)
@@ -384,10 +420,16 @@ class MidpointIntegrator(_Closing):
 
     def step(self, u=None) -> "fem.Function":
         """Advance (q, p, t) by one step dt; return ``self.q``. The midpoint scheme takes no
-        input values (``u`` must be None): forcing lives in the system's UFL forms."""
-        if u is not None:
-            raise InputError("MidpointIntegrator.step takes no input values: put the forcing "
-                             "into the LagrangianSystem (forcing=..., time=...)")
+        input values (``u`` must be None): forcing lives in the system's UFL forms. Collective:
+        a refusal (closed, never initialised, ``u`` given) is raised on every rank."""
+        problem = self._step_problem(u, False)
+        if self._agreed_loop and problem is None:
+            return self._step_agreed()
+        agree(self._comm, "MidpointIntegrator.step", problem)
+        return self._step_agreed()
+
+    def _step_agreed(self) -> "fem.Function":
+        """:meth:`step` once every rank agreed to take it (the time loop checks at its entry)."""
         try:
             self._step()
         finally:
@@ -437,6 +479,7 @@ class MidpointIntegrator(_Closing):
 
     def velocity(self, out: "fem.Function | None" = None) -> "fem.Function":
         """v with M v = p - dL/dq_t(q, 0) (the discrete Legendre transform)."""
+        self._check_open("velocity")
         sysm = self.system
         out = fem.Function(sysm.V) if out is None else out
         sysm.q.x.array[:] = self.q.x.array
@@ -454,6 +497,7 @@ class MidpointIntegrator(_Closing):
 
     def energy(self, v: "fem.Function | None" = None) -> float:
         """E(q, v) = dL/dq_t . v - L, assembled from the UFL energy form (all ranks)."""
+        self._check_open("energy")
         sysm = self.system
         v = self.velocity() if v is None else v
         sysm.q.x.array[:] = self.q.x.array
@@ -463,6 +507,7 @@ class MidpointIntegrator(_Closing):
 
     def close(self) -> None:
         """Destroy the PETSc objects and remove any options still in the global database."""
+        self.closed = True
         _pop_options(self._pending_options)
         self._pending_options = []
         _destroy(self._ksp, getattr(self, "_A1", None), getattr(self, "_rhs", None),
@@ -509,26 +554,37 @@ class NewmarkIntegrator(_Closing):
                  prefix: str | None = None, petsc_options: dict | None = None):
         if not isinstance(system, LagrangianSystem):
             raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
-        if not system.is_quadratic:
-            raise InputError("Newmark here is for linear systems (a quadratic Lagrangian)")
-        if solver not in ("direct", "cg"):
-            raise InputError(f"solver must be 'direct' or 'cg', got {solver!r}")
-        dt = _check_dt(dt)
-        try:
-            alpha, beta = (float(c) for c in rayleigh)
-        except (TypeError, ValueError):
-            raise InputError(f"rayleigh must be (alpha, beta), got {rayleigh!r}") from None
-        if not (np.isfinite(alpha) and np.isfinite(beta) and alpha >= 0 and beta >= 0):
-            raise InputError(f"rayleigh = {rayleigh!r}: alpha and beta must be finite and >= 0")
-        for j, form in enumerate(input_forms):
-            args = form.arguments() if isinstance(form, ufl.Form) else None
-            if not args or len(args) != 1 or args[0].ufl_function_space() != system.V:
-                raise InputError(f"input_forms[{j}] must be a UFL 1-form whose test function is "
-                                 "on the system's space (the space of q)")
+        comm = system.V.mesh.comm
+
+        def local():
+            if not system.is_quadratic:
+                raise InputError("Newmark here is for linear systems (a quadratic Lagrangian)")
+            if solver not in ("direct", "cg"):
+                raise InputError(f"solver must be 'direct' or 'cg', got {solver!r}")
+            step = _check_dt(dt)
+            try:
+                a, b = (float(c) for c in rayleigh)
+            except (TypeError, ValueError):
+                raise InputError(f"rayleigh must be (alpha, beta), got {rayleigh!r}") from None
+            if not (np.isfinite(a) and np.isfinite(b) and a >= 0 and b >= 0):
+                raise InputError(f"rayleigh = {rayleigh!r}: alpha and beta must be finite and >= 0")
+            for j, form in enumerate(input_forms):
+                args = form.arguments() if isinstance(form, ufl.Form) else None
+                if not args or len(args) != 1 or args[0].ufl_function_space() != system.V:
+                    raise InputError(f"input_forms[{j}] must be a UFL 1-form whose test function "
+                                     "is on the system's space (the space of q)")
+            _check_options(petsc_options)
+            return step, a, b
+
+        dt, alpha, beta = check(comm, "NewmarkIntegrator", local)
+        agree(comm, "NewmarkIntegrator", None, dt=dt, rayleigh=(alpha, beta), solver=solver,
+              input_channels=len(input_forms), petsc_options=petsc_options,
+              near_nullspace=near_nullspace is not None)
         _check_homogeneous(system.bcs, system.V)
         prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
         self.system, self.dt, self.prefix = system, float(dt), prefix
-        V, comm = system.V, system.V.mesh.comm
+        self._comm = comm
+        V = system.V
         bcs = list(system.bcs)
         self._bcs = bcs
         M = fpetsc.assemble_matrix(fem.form(system.mass_form), bcs=bcs)
@@ -571,25 +627,62 @@ class NewmarkIntegrator(_Closing):
         self._qs, self._vs, self._rhs, self._tmp = (fpetsc.create_vector(V) for _ in range(4))
         self.t = 0.0
 
-    def _load(self, u, out):
+    def _values(self, u, what: str):
+        """(problem, u as (m,) floats): the input values of one time, checked on this rank."""
+        m = len(self.inputs)
+        if u is None:
+            if m:
+                return (f"{what}: this integrator has {m} input channel(s) (input_forms): pass "
+                        f"{m} input value(s)"), None
+            return None, np.zeros(0)
+        try:
+            values = np.atleast_1d(np.asarray(u, dtype=float)).reshape(-1)
+        except (TypeError, ValueError):
+            return f"{what}: input values must be {m} numbers, got {u!r}", None
+        if len(values) != m:
+            return f"{what}: expected {m} input value(s) (one per input form), got {len(values)}", None
+        if not np.all(np.isfinite(values)):
+            return f"{what}: input values contain NaN or inf: {values}", None
+        return None, values
+
+    def _agreed_values(self, u, what: str, problem=None):
+        """The input values, the same on every rank (else the same error on every rank)."""
+        found, values = self._values(u, what)
+        problem = problem or found
+        comm = self._comm
+        if comm.size > 1:
+            # the common case in one small Allreduce (max of [refused, u, -u]: every rank agrees
+            # when no rank refused and max u = min u to RTOL); the full agreement, with its
+            # message, only when something is wrong
+            m = len(self.inputs)
+            ok = problem is None
+            buf = np.concatenate([[0.0 if ok else 1.0], values if ok else np.zeros(m),
+                                  -values if ok else np.zeros(m)])
+            out = np.empty_like(buf)
+            comm.Allreduce(buf, out, op=MPI.MAX)
+            high, low = out[1:m + 1], -out[m + 1:]
+            if out[0] == 0.0 and np.all(high - low <= RTOL * np.max(np.abs(out[1:]), initial=0.0)):
+                return values
+        agree(comm, f"NewmarkIntegrator.{what}", problem,
+              **({"input values": values} if problem is None else {}))
+        return values
+
+    def _load(self, values, out):
         out.set(0.0)
-        if u is None and not self.inputs:
-            return out
-        u = np.atleast_1d(np.asarray(u, dtype=float))
-        if len(u) != len(self.inputs):
-            raise InputError(f"expected {len(self.inputs)} input values, got {len(u)}")
-        if not np.all(np.isfinite(u)):
-            raise InputError(f"input values contain NaN or inf: {u}")
-        for b, uj in zip(self.inputs, u):
+        for b, uj in zip(self.inputs, values):
             out.axpy(float(uj), b)
         return out
 
     def initialize(self, u0=None):
-        """Start from rest (q = v = 0) with the consistent acceleration M a0 = B u(0)."""
+        """Start from rest (q = v = 0) with the consistent acceleration M a0 = B u(0)
+        (``u0``: the input values at t = 0; None for zero inputs)."""
+        if u0 is None and self.inputs and not self.closed:
+            u0 = np.zeros(len(self.inputs))
+        u0 = self._agreed_values(u0, "initialize", self._open_problem("initialize"))
         for f in (self.q, self.v, self.a):
             f.x.array[:] = 0.0
         if self.inputs:
-            rhs = self._load(u0 if u0 is not None else np.zeros(len(self.inputs)), self._rhs)
+            rhs = self._load(u0, self._rhs)
             if rhs.norm() > 0:
                 # CG + Jacobi on the mass matrix (no second factorisation: on large meshes the
                 # memory of one is all there is)
@@ -605,10 +698,20 @@ class NewmarkIntegrator(_Closing):
                 self.a.x.scatter_forward()
                 ksp.destroy()
         self.t = 0.0
+        self.initialized = True
 
     def step(self, u1=None) -> "fem.Function":
         """Advance one step with the inputs u(t + dt) (None when there are no input forms);
-        return ``self.q``."""
+        return ``self.q``. Collective: the input values must be the same on every rank
+        (checked: one small allgather per step on several ranks), a refusal is raised on
+        every rank."""
+        problem = self._step_problem(None, True)
+        if self._agreed_loop and problem is None and u1 is None and not self.inputs:
+            return self._step_agreed(np.zeros(0))
+        return self._step_agreed(self._agreed_values(u1, "step", problem))
+
+    def _step_agreed(self, values) -> "fem.Function":
+        """:meth:`step` with input values every rank agreed on."""
         dt = self.dt
         q, v, a = self.q.x.petsc_vec, self.v.x.petsc_vec, self.a.x.petsc_vec
         qs, vs, rhs, tmp = self._qs, self._vs, self._rhs, self._tmp
@@ -617,7 +720,7 @@ class NewmarkIntegrator(_Closing):
         qs.axpy(0.25 * dt**2, a)
         v.copy(vs)
         vs.axpy(0.5 * dt, a)
-        self._load(u1, rhs)
+        self._load(values, rhs)
         self.C.mult(vs, tmp)
         rhs.axpy(-1.0, tmp)
         self.K.mult(qs, tmp)
@@ -638,6 +741,7 @@ class NewmarkIntegrator(_Closing):
 
     def velocity(self, out: "fem.Function | None" = None) -> "fem.Function":
         """The current velocity (``self.v``, or a copy in ``out``)."""
+        self._check_open("velocity")
         if out is None:
             return self.v
         out.x.array[:] = self.v.x.array
@@ -645,6 +749,7 @@ class NewmarkIntegrator(_Closing):
 
     def energy(self, v: "fem.Function | None" = None) -> float:
         """1/2 v^T M v + 1/2 q^T K q (mechanical energy; v defaults to the current velocity)."""
+        self._check_open("energy")
         q, tmp = self.q.x.petsc_vec, self._tmp
         v = self.v.x.petsc_vec if v is None else v.x.petsc_vec
         self.M.mult(v, tmp)
@@ -654,6 +759,7 @@ class NewmarkIntegrator(_Closing):
 
     def close(self) -> None:
         """Destroy the PETSc objects (matrices, solver, work and input vectors)."""
+        self.closed = True
         _destroy(self._ksp, self.M, self.K, self.C, self.A, self._qs, self._vs, self._rhs,
                  self._tmp, *self.inputs)
         self._ksp = self.M = self.K = self.C = self.A = None

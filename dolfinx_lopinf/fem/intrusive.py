@@ -16,7 +16,8 @@ import numpy as np
 
 from ._dolfinx import PETSc, dolfinx
 from ..errors import InputError
-from .fom import StateMap, owned_global_dofs
+from .agreement import agree
+from .fom import StateMap, _map_key, owned_global_dofs
 from .lagrangian import LagrangianSystem
 from ..core.rom import LagrangianROM
 
@@ -28,11 +29,28 @@ def reduced_matrix(A: "PETSc.Mat", V, basis: np.ndarray, state_map: StateMap) ->
     ``basis`` must be available on every rank (it is small: n x r).
     """
     comm = V.mesh.comm
-    basis = np.asarray(basis, dtype=float)
-    n = len(state_map.order)
-    if basis.ndim != 2 or basis.shape[0] != n or not np.all(np.isfinite(basis)):
-        raise InputError(f"basis must be a finite (n, r) array with n = {n} state rows (every "
-                         f"rank), got shape {basis.shape}")
+    problem = None
+    try:
+        basis = np.asarray(basis, dtype=float)
+    except (TypeError, ValueError):
+        problem, basis = f"basis must be an (n, r) array of numbers, got {type(basis).__name__}", None
+    if problem is None and not isinstance(state_map, StateMap):
+        problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
+    if problem is None:
+        n = len(state_map.order)
+        if basis.ndim != 2 or basis.shape[0] != n:
+            problem = (f"basis must be a finite (n, r) array with n = {n} state rows (every rank), "
+                       f"got shape {basis.shape}")
+        elif not np.all(np.isfinite(basis)):
+            problem = "basis contains NaN or inf"
+    agree(comm, "reduced_matrix", problem,
+          **({} if problem else {"basis": basis, "state_map": _map_key(state_map)}))
+    return _reduced(A, V, basis, state_map)
+
+
+def _reduced(A, V, basis, state_map) -> np.ndarray:
+    """:func:`reduced_matrix` once the ranks agreed on the basis."""
+    comm = V.mesh.comm
     W = state_map.to_dofs(basis)  # global dof coordinates
     owned = owned_global_dofs(V)
     x, y = A.createVecRight(), A.createVecLeft()
@@ -51,13 +69,16 @@ def dense_state_matrix(form, V, state_map: StateMap) -> np.ndarray:
     For small systems (a beam: n = 400) - e.g. the mass matrix as a POD weight. Cost: n
     matrix-vector products and n^2 memory, so not for 3D meshes.
     """
-    A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(form))
-    A.assemble()
+    if not isinstance(state_map, StateMap):
+        raise InputError(f"state_map must be a StateMap, got {type(state_map).__name__}")
     n = len(state_map.order)
     if n > 20000:
         raise InputError(f"n = {n} is too large for a dense state matrix (limit 20,000): "
                          "project with the basis instead (dolfinx_lopinf.fem.intrusive)")
-    dense = reduced_matrix(A, V, np.eye(n), state_map)
+    agree(V.mesh.comm, "dense_state_matrix", None, state_map=_map_key(state_map))
+    A = dolfinx.fem.petsc.assemble_matrix(dolfinx.fem.form(form))
+    A.assemble()
+    dense = _reduced(A, V, np.eye(n), state_map)
     A.destroy()
     return 0.5 * (dense + dense.T)
 

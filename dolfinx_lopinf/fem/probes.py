@@ -55,7 +55,8 @@ from ..core import polynomial as pl
 from ..core._checks import check_int, check_positive
 from ..errors import InputError, LOpInfWarning, StepFailedError
 from ._dolfinx import MPI, PETSc
-from .fom import StateMap
+from .agreement import agree, together
+from .fom import StateMap, _map_key
 from .integrators import MidpointIntegrator
 from .lagrangian import LagrangianSystem
 
@@ -105,25 +106,41 @@ def probe_points(Qh: np.ndarray, Vh: np.ndarray, n: int, *, rng, spread: float =
     ``inputs_range`` is None, else uniform in [lo, hi] per input row).
     """
     Qh, Vh = np.asarray(Qh, float), np.asarray(Vh, float)
-    if Qh.ndim != 2 or Qh.shape != Vh.shape:
+    if Qh.ndim != 2 or Qh.shape != Vh.shape or Qh.shape[1] < 1:
         raise InputError(f"Qh and Vh must be (r, K) arrays of the same shape, got {Qh.shape} and "
                          f"{Vh.shape}")
     if not (np.all(np.isfinite(Qh)) and np.all(np.isfinite(Vh))):
         raise InputError("Qh and Vh contain NaN or inf")
-    if int(n) < 1 or scale_max < 1 or spread < 0:
-        raise InputError(f"need n >= 1, scale_max >= 1 and spread >= 0; got n = {n}, "
-                         f"scale_max = {scale_max}, spread = {spread}")
+    n = check_int(n, "n (points to sample)", minimum=1)
+    for name, value, low in (("spread", spread, 0.0), ("scale_max", scale_max, 1.0)):
+        try:
+            ok = bool(np.isfinite(float(value)) and float(value) >= low)
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise InputError(f"{name} must be a finite number >= {low:g}, got {value!r} (NaN or "
+                             "inf would make every sampled point NaN)")
+    spread, scale_max = float(spread), float(scale_max)
+    if not isinstance(rng, np.random.Generator):
+        raise InputError(f"rng must be a numpy Generator (np.random.default_rng(seed)), got "
+                         f"{type(rng).__name__}")
+    lo_hi = None
+    if inputs_range is not None:
+        try:
+            lo_hi = np.atleast_2d(np.asarray(inputs_range, float))
+        except (TypeError, ValueError):
+            lo_hi = np.zeros((0, 0))
+        if lo_hi.ndim != 2 or lo_hi.shape[1] != 2 or not np.all(np.isfinite(lo_hi)) \
+                or np.any(lo_hi[:, 0] > lo_hi[:, 1]):
+            raise InputError(f"inputs_range must be finite (lo, hi) with lo <= hi, or one such "
+                             f"pair per input, got {inputs_range!r}")
     r, K = Qh.shape
-    n = int(n)
     idx = rng.integers(0, K, n)
     scale = np.where(np.arange(n) % 2 == 0, 1.0, rng.uniform(1.0, scale_max, n))
     Q = Qh[:, idx] * scale + spread * Qh.std(axis=1)[:, None] * rng.standard_normal((r, n))
     Vel = Vh[:, idx] * scale + spread * Vh.std(axis=1)[:, None] * rng.standard_normal((r, n))
     U = None
-    if inputs_range is not None:
-        lo_hi = np.atleast_2d(np.asarray(inputs_range, float))
-        if lo_hi.shape[1] != 2:
-            raise InputError(f"inputs_range must be (lo, hi) or one (lo, hi) per input, got {inputs_range!r}")
+    if lo_hi is not None:
         U = lo_hi[:, :1] + (lo_hi[:, 1:] - lo_hi[:, :1]) * rng.uniform(size=(len(lo_hi), n))
     if pair_velocities:
         Q, Vel = np.hstack([Q, Q]), np.hstack([Vel, -Vel])
@@ -173,6 +190,25 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
             Measured on the SVK cantilever: h = 4e-6 meets 1e-6 on 10 cells (estimate 2e-7)
             but not on 80 (2e-5: the r = 6 fit 5.6x the intrusive error), where h = 1e-6 does.
     """
+    # a callable black box shows its communicator only once called: its checks use COMM_WORLD
+    comm = black_box.V.mesh.comm if isinstance(black_box, LagrangianSystem) else MPI.COMM_WORLD
+    args, problem = None, None
+    try:
+        args = _probe_args(black_box, V, state_map, Q, Vel, inputs, set_input, step_size, levels,
+                           step_tol, petsc_options)
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it
+        problem = exc
+    agree(comm, "probe", problem, **({} if args is None else args.pop("settings")))
+    with together(comm, "probe"):
+        return _probe(black_box, state_map, set_input, petsc_options, **args)
+
+
+def _probe_args(black_box, V, state_map, Q, Vel, inputs, set_input, step_size, levels, step_tol,
+                petsc_options) -> dict:
+    """:func:`probe`'s checks on this rank alone (raises; no collective)."""
+    if not isinstance(black_box, LagrangianSystem) and not callable(black_box):
+        raise InputError("black_box must be a LagrangianSystem or a callable dt -> integrator "
+                         f"with advance(q, p); got {type(black_box).__name__}")
     V = np.asarray(V, float)
     Q, Vel = np.atleast_2d(np.asarray(Q, float)), np.atleast_2d(np.asarray(Vel, float))
     levels = check_int(levels, "levels (Richardson needs two step sizes)", minimum=2)
@@ -181,9 +217,11 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
     problem = None
     if not isinstance(state_map, StateMap):
         problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
-    elif V.ndim != 2 or V.shape[0] != len(state_map.order) or not np.all(np.isfinite(V)):
+    elif V.ndim != 2 or V.shape[0] != len(state_map.order):
         problem = (f"V must be a finite (n, r) array with n = {len(state_map.order)} state rows, got "
                    f"shape {V.shape}")
+    elif not np.all(np.isfinite(V)):
+        problem = _nonfinite("V", V)
     elif Q.shape[0] != V.shape[1] or Q.shape != Vel.shape:
         problem = f"Q and Vel must both be (r = {V.shape[1]}, N), got {Q.shape} and {Vel.shape}"
     elif not (np.all(np.isfinite(Q)) and np.all(np.isfinite(Vel))):
@@ -197,6 +235,18 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
         U = np.atleast_2d(np.asarray(inputs, float))
         if U.shape[1] != Q.shape[1] or not np.all(np.isfinite(U)):
             raise InputError(f"inputs must be finite with N = {Q.shape[1]} columns, got {U.shape}")
+    if petsc_options is not None and not isinstance(petsc_options, dict):
+        raise InputError(f"petsc_options must be a dict, got {type(petsc_options).__name__}")
+    settings = {"V": V, "state_map": _map_key(state_map), "Q": Q, "Vel": Vel, "inputs": U,
+                "set_input": set_input is not None, "step_size": step_size, "levels": levels,
+                "step_tol": step_tol, "petsc_options": petsc_options}
+    return {"V": V, "Q": Q, "Vel": Vel, "U": U, "step_size": step_size, "levels": levels,
+            "step_tol": step_tol, "settings": settings}
+
+
+def _probe(black_box, state_map, set_input, petsc_options, *, V, Q, Vel, U, step_size, levels,
+           step_tol) -> ProbeData:
+    """:func:`probe` once every rank agreed on its arguments."""
     t0 = time.perf_counter()
     h, search = step_size, []
     pilot = np.arange(min(PILOT_SAMPLES, Q.shape[1]))
@@ -220,7 +270,7 @@ def probe(black_box, V: np.ndarray, state_map: StateMap, Q: np.ndarray, Vel: np.
         if best > step_tol:
             warnings.warn(f"probe step: the Richardson estimate reached only {best:.1e} (asked "
                           f"{step_tol:.1e}) at h = {h:.3g} after {len(search)} tries {search}; the "
-                          "data are no more accurate than that", LOpInfWarning, stacklevel=2)
+                          "data are no more accurate than that", LOpInfWarning, stacklevel=4)
     A, est = _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_input)
     steps = levels * (Q.shape[1] + len(search) * len(pilot))
     return ProbeData(Q, Vel, U, A, est, h, levels, steps, time.perf_counter() - t0, search)
@@ -258,12 +308,42 @@ def _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_
 def mass_gram(integrator, V: np.ndarray, state_map: StateMap) -> np.ndarray:
     """V^T M V (r, r) with the integrator's (distributed) mass matrix, V (n, r) in state
     coordinates on every rank - e.g. to make a basis M-orthonormal on any number of ranks:
-    ``V @ np.linalg.inv(np.linalg.cholesky(G)).T``."""
-    basis = _DofBasis(integrator, np.asarray(V, float), state_map, check=False)
+    ``V @ np.linalg.inv(np.linalg.cholesky(G)).T``. Collective: V must be the same on every
+    rank (checked)."""
+    if not hasattr(integrator, "mass_matrix") or not hasattr(integrator, "system"):
+        raise InputError(f"integrator must be a MidpointIntegrator (mass_matrix, system), got "
+                         f"{type(integrator).__name__}")
+    comm = integrator.system.V.mesh.comm
+    problem, V = None, np.asarray(V, dtype=float) if _is_numeric(V) else None
+    if not isinstance(state_map, StateMap):
+        problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
+    elif V is None or V.ndim != 2 or V.shape[0] != len(state_map.order):
+        problem = (f"V must be a finite (n, r) array with n = {len(state_map.order)} state rows, "
+                   f"got {'shape ' + str(V.shape) if V is not None else 'non-numbers'}")
+    elif not np.all(np.isfinite(V)):
+        problem = _nonfinite("V", V)
+    elif getattr(integrator, "closed", False):
+        problem = "the integrator was closed; make a new one"
+    agree(comm, "mass_gram", problem, **({} if problem else {"V": V, "state_map": _map_key(state_map)}))
+    basis = _DofBasis(integrator, V, state_map, check=False)
     try:
         return basis.G
     finally:
         basis.close()
+
+
+def _nonfinite(name: str, a: np.ndarray) -> str:
+    bad = np.argwhere(~np.isfinite(a))
+    return (f"{name} contains {len(bad)} NaN/inf entries (first at index {tuple(int(i) for i in bad[0])}); "
+            f"pass a finite {name}")
+
+
+def _is_numeric(a) -> bool:
+    try:
+        np.asarray(a, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return True
 
 
 class _DofBasis:

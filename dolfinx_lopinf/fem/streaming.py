@@ -32,7 +32,15 @@ import numpy as np
 
 from ._dolfinx import MPI, dolfinx
 from ..errors import InputError
+from .agreement import agree
 from .lagrangian import _on_space
+
+
+def _positive(x) -> bool:
+    try:
+        return bool(np.isfinite(float(x)) and float(x) > 0)
+    except (TypeError, ValueError):
+        return False
 
 
 class StreamingPOD:
@@ -50,9 +58,14 @@ class StreamingPOD:
     def __init__(self, V, capacity: int, *, weight=None, directory=None, chunk: int = 65536):
         if not isinstance(V, dolfinx.fem.FunctionSpace):
             raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
+        problem = None
         for name, value, low in (("capacity", capacity, 2), ("chunk", chunk, 1)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                raise InputError(f"{name} must be an integer >= {low}, got {value!r}")
+                problem = problem or f"{name} must be an integer >= {low}, got {value!r}"
+        if weight is not None and not hasattr(weight, "mult"):
+            problem = problem or f"weight must be a PETSc matrix (or None), got {type(weight).__name__}"
+        # the directory may differ between ranks (node-local disks); the sizes may not
+        agree(V.mesh.comm, "StreamingPOD", problem, capacity=capacity, weight=weight is not None)
         self.V, self.comm = V, V.mesh.comm
         self.n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.capacity, self.chunk, self.weight = int(capacity), int(chunk), weight
@@ -85,8 +98,7 @@ class StreamingPOD:
         elif not np.all(np.isfinite(q)):
             problem = f"snapshot {self.count} contains NaN or inf"
         # collective verdict: a rank that refuses does not leave the others appending
-        if self.comm.allreduce(problem is not None, op=MPI.LOR):
-            raise InputError(problem or f"snapshot {self.count} was refused on another rank")
+        agree(self.comm, "StreamingPOD.append", problem)
         self._Q[self.count] = q
         if self.weight is not None:
             self._x.array[:] = q
@@ -115,6 +127,12 @@ class StreamingPOD:
             ``(basis_local, Qh, lam)``: this rank's owned rows of V (n_owned, r), the reduced
             coordinates Qh = V^T W Q (r, K) and all eigenvalues of G (descending).
         """
+        problem = None
+        if isinstance(r, (bool, np.bool_)) or not isinstance(r, (int, np.integer)) or r < 1:
+            problem = f"r must be an integer >= 1, got {r!r}"
+        elif not _positive(rank_rtol):
+            problem = f"rank_rtol must be a positive finite number, got {rank_rtol!r}"
+        agree(self.comm, "StreamingPOD.compute", problem, r=r, rank_rtol=rank_rtol)
         lam, Psi = self._eigen()
         sv = np.sqrt(np.maximum(lam, 0.0))
         rank = self.numerical_rank(rank_rtol)

@@ -19,15 +19,28 @@ Partial states (``rows=``): ``states`` holds only the listed state rows (what
 ``Basis.reconstruct(Qh, rows=rows)`` returns); the other state rows are written as
 ``fill`` (0 by default; ``np.nan`` makes ParaView leave them blank).
 
-MPI: every function here is collective over ``V.mesh.comm``. ``states``, ``times`` and ``rows``
-are taken from rank 0 (other ranks may pass ``None`` or the same arrays; theirs are ignored),
-and every rank raises the same :class:`~dolfinx_lopinf.errors.InputError` on bad input before
-anything is written.
+MPI: every function here is collective over ``V.mesh.comm``. ``path``, ``states``, ``times`` and
+``rows`` are taken from rank 0 (other ranks may pass ``None`` or the same arrays; theirs are
+ignored); ``name``, ``engine``, ``fill`` and ``overwrite`` must be the same on every rank
+(checked), and every rank raises the same :class:`~dolfinx_lopinf.errors.InputError` on bad
+input before anything is written.
+
+What :func:`write_vtx` never does: write a space VTX cannot show (Hermite, Nedelec, ... - VTX
+would write their derivative or edge dofs as point values: refused), delete a folder it did not
+write (an existing ``path`` must be a VTX ``.bp`` folder - ADIOS2 files with VTX's ``vtk.xml``
+schema - or empty, unless ``overwrite=True``), leave ``path`` missing at any instant (the swap
+of :func:`~dolfinx_lopinf.core.io_atomic.swap_folder`), or let ADIOS2 run out of disk space (it
+aborts the process then): the free space is checked against the file's size before the first
+step and before every step, and a shortfall raises
+:class:`~dolfinx_lopinf.errors.OutOfSpaceError` with nothing written. Temporary folders of a
+killed write are removed by the next write of the same path.
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -35,9 +48,12 @@ from pathlib import Path
 import numpy as np
 
 from ..core._checks import as_real_array
-from ._dolfinx import dolfinx
-from ..errors import InputError
-from .fom import StateMap, owned_global_dofs
+from ..core.io_atomic import (recover_folder, remove_stale_temporaries, swap_folder,
+                              temporary_prefix)
+from ._dolfinx import MPI, dolfinx
+from ..errors import InputError, OutOfSpaceError
+from .agreement import agree, together
+from .fom import StateMap, _map_key, owned_global_dofs
 
 __all__ = ["state_rows", "states_to_function", "write_vtx"]
 
@@ -57,12 +73,26 @@ def _default_map(V, state_map):
     return StateMap.identity(V) if state_map is None else state_map
 
 
-def _verdict(comm, problem):
+def _verdict(comm, problem, where="write_vtx"):
     """Rank 0's problem (or any rank's), raised as InputError on every rank."""
-    problems = comm.allgather(problem) if comm.size > 1 else [problem]
-    for p in problems:
-        if p is not None:
-            raise InputError(p)
+    agree(comm, where, problem)
+
+
+def _lagrange_problem(V) -> str | None:
+    """Why VTX cannot show this space's dofs as point values (None for (discontinuous)
+    Lagrange, scalar or blocked)."""
+    element = V.ufl_element()
+    if getattr(element, "is_mixed", False):
+        return ("V is a mixed space: VTX writes one (discontinuous) Lagrange field; write each "
+                "sub-space's collapsed field separately")
+    family = getattr(element, "element_family", None)
+    if family is not None and getattr(family, "name", str(family)) != "P":
+        name = getattr(family, "name", str(family))
+        return (f"V is a {name} space, which VTX cannot show: it writes every dof as a point "
+                "value, so derivative (Hermite) or edge/face (Nedelec, Raviart-Thomas) dofs would "
+                "come out as wrong values. Interpolate the states into a Lagrange space first "
+                "(e.g. the nodal values of a Hermite beam into P1) and write that")
+    return None
 
 
 def _map_problem(V, state_map: StateMap) -> str | None:
@@ -172,7 +202,7 @@ def states_to_function(V, state, state_map: StateMap | None = None, f=None, *, r
     S = None
     if problem is None and comm.rank == 0:
         problem, S = _root_states(V, state, state_map, rows, fill, single=True)
-    _verdict(comm, problem)
+    _verdict(comm, problem, "states_to_function")
     f = dolfinx.fem.Function(V) if f is None else f
     _set(f, _scatter(V, S, state_map)[:, 0])
     return f
@@ -186,7 +216,7 @@ def state_rows(V, marker, state_map: StateMap | None = None) -> np.ndarray:
     V = _space(V)
     comm = V.mesh.comm
     state_map = _default_map(V, state_map)
-    _verdict(comm, _map_problem(V, state_map))
+    _verdict(comm, _map_problem(V, state_map), "state_rows")
     imap, bs = V.dofmap.index_map, V.dofmap.index_map_bs
     blocks = dolfinx.fem.locate_dofs_geometrical(V, marker)
     blocks = blocks[blocks < imap.size_local]
@@ -198,17 +228,95 @@ def state_rows(V, marker, state_map: StateMap | None = None) -> np.ndarray:
     return np.sort(inverse[dofs])
 
 
-def _path_problem(path) -> str | None:
+_BP_ENTRY = re.compile(r"^(data\.\d+|md\.\d+|md\.idx|mmd\.\d+|profiling\.json)$")
+
+
+def _not_vtx(folder: Path) -> str | None:
+    """None when the existing ``folder`` is a VTX .bp (only ADIOS2 files, an index, and VTX's
+    vtk.xml schema in its metadata) or empty; else what it holds."""
+    try:
+        entries = sorted(os.listdir(folder))
+    except OSError as exc:
+        return f"it cannot be listed ({exc})"
+    if not entries:
+        return None
+    others = [e for e in entries if not _BP_ENTRY.match(e) or (folder / e).is_symlink()
+              or not (folder / e).is_file()]
+    if others:
+        shown = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+        return f"it holds {len(others)} entries that are not ADIOS2 files ({shown})"
+    if "md.idx" not in entries or "md.0" not in entries:
+        return "it has no ADIOS2 index (md.idx, md.0)"
+    with open(folder / "md.0", "rb") as f:
+        head = f.read(1 << 22)
+    if b"vtk.xml" not in head:
+        return "it is an ADIOS2 file but not a VTX one (no vtk.xml schema in md.0)"
+    return None
+
+
+def _path_problem(path, overwrite: bool) -> str | None:
+    """Rank 0's checks of the target (after finishing an interrupted replacement of it)."""
     p = Path(path)
     if p.suffix != ".bp":
         return f"the VTX path must end in .bp (a folder ParaView opens), got {str(path)!r}"
     if not p.parent.is_dir():
         return f"the folder {str(p.parent)!r} of the VTX path does not exist; create it first"
-    if p.exists() and not p.is_dir():
-        return f"{str(path)!r} exists and is not a .bp folder; refusing to replace it"
-    if not os.access(p.parent, os.W_OK):
+    try:
+        recover_folder(p)  # a kill between the two renames of a replacement: put it right
+    except OSError as exc:
+        return f"{str(path)!r}: an interrupted earlier replacement could not be finished ({exc})"
+    if p.is_symlink() or (p.exists() and not p.is_dir()):
+        return (f"{str(path)!r} exists and is not a .bp folder (a file or a link); refusing to "
+                "replace it - delete it yourself or choose another path")
+    if p.is_dir() and not overwrite:
+        why = _not_vtx(p)
+        if why is not None:
+            return (f"{str(path)!r} exists and is not a VTX .bp folder: {why}. Refusing to replace "
+                    "it (its contents would be deleted); choose another path, or pass "
+                    "overwrite=True to replace it anyway")
+    if not os.access(p.parent, os.W_OK | os.X_OK):
         return f"the folder {str(p.parent)!r} is not writable"
     return None
+
+
+def _bytes_per_step(V) -> int:
+    """An upper estimate of the bytes one VTX step of a function on V takes on disk (all
+    ranks; VTX rewrites the mesh every step): per local point 3 coordinates and the values
+    (vectors padded to 3), per cell its connectivity, its offset and type, 4 kB of metadata;
+    times 1.25, the margin over what was measured (the real size was 0.89x-1.10x the sum
+    for P1 scalars on 1D/2D meshes and P2 vectors on tetrahedra, 1 and 2 ranks). Collective."""
+    imap = V.dofmap.index_map
+    points = imap.size_local + imap.num_ghosts
+    value_size = int(np.prod(V.value_shape)) if len(V.value_shape) else 1
+    values = 1 if value_size == 1 else max(3, value_size)
+    tdim = V.mesh.topology.dim
+    cells = V.mesh.topology.index_map(tdim).size_local
+    per_cell = V.dofmap.cell_dofs(0).size if cells else 0
+    local = 8 * points * (3 + values) + 8 * cells * (per_cell + 2)
+    return int(1.25 * (V.mesh.comm.allreduce(local, op=MPI.SUM) + 4096))
+
+
+def _space_problem(folder: Path, need: int, what: str) -> str | None:
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError as exc:
+        return f"cannot read the free space of {folder} ({exc})"
+    if free < need:
+        return (f"{what} needs about {need / 1e6:.3g} MB but the file system of {folder} has "
+                f"{free / 1e6:.3g} MB free; free some space or write fewer steps (or rows=) - "
+                "nothing was written")
+    return None
+
+
+def _space_verdict(comm, folder: Path, need: int, what: str) -> None:
+    """OutOfSpaceError on every rank when rank 0 sees less than ``need`` bytes free."""
+    problem = _space_problem(folder, need, what) if comm.rank == 0 else None
+    if comm.size > 1:
+        problem = comm.bcast(problem, root=0)
+    if problem is not None:
+        exc = OutOfSpaceError(errno.ENOSPC, problem)
+        exc.__lopinf_collective__ = True
+        raise exc
 
 
 def _times_problem(times, K: int):
@@ -227,13 +335,14 @@ def _times_problem(times, K: int):
 
 
 def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name: str = "u",
-              rows=None, fill: float = 0.0, engine: str = "BP4") -> Path:
+              rows=None, fill: float = 0.0, engine: str = "BP4", overwrite: bool = False) -> Path:
     """Write a trajectory of full states as a VTX file (an ADIOS2 .bp folder) for ParaView.
 
     Everything is checked first (the same InputError on every rank, nothing on disk); the
-    file is written into a temporary folder beside ``path`` and renamed to ``path`` at the end,
-    so ``path`` is either absent/its previous version or the complete new file - never half of
-    one. An existing .bp folder at ``path`` is replaced.
+    file is written into a temporary folder beside ``path`` and swapped with ``path`` at the
+    end, so ``path`` is either absent/its previous version or the complete new file - never
+    half of one, and never missing. An existing VTX .bp folder at ``path`` is replaced; any
+    other existing folder is refused unless ``overwrite=True`` (see the module docstring).
 
     Args:
         path: the .bp folder to write (its parent folder must exist).
@@ -247,14 +356,27 @@ def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name
             rows are written as ``fill``.
         fill: value of the rows not in ``rows`` (0; ``np.nan`` to blank them in ParaView).
         engine: ADIOS2 engine, "BP4" (default), "BP5" or "BPFile".
+        overwrite: replace an existing folder at ``path`` even when it is not a VTX .bp.
 
     Returns:
-        the path written.
+        the path written (rank 0's, on every rank).
+
+    Raises:
+        InputError: bad input, a space VTX cannot show, an existing folder that is not a VTX
+            .bp (without ``overwrite``) - on every rank, before anything is written.
+        OutOfSpaceError: not enough free disk space (checked before and during the write);
+            ``path`` is left as it was.
     """
     V = _space(V)
     comm = V.mesh.comm
+    agree(comm, "write_vtx", _lagrange_problem(V), name=name, engine=engine, fill=fill,
+          overwrite=overwrite, state_map=_map_key(state_map))
     state_map = _default_map(V, state_map)
-    S, t = _checked_write(V, path, states, times, state_map, rows, fill, name, engine)
+    S, t, target = _checked_write(V, path, states, times, state_map, rows, fill, name, engine,
+                                  overwrite)
+    per_step = _bytes_per_step(V)
+    _space_verdict(comm, target.parent, len(t) * per_step + (1 << 20),
+                   f"writing {target.name} ({len(t)} steps of about {per_step / 1e3:.3g} kB)")
     local = _scatter(V, S, state_map)
     del S
 
@@ -267,15 +389,20 @@ def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name
                              "Lagrange spaces only - interpolate into one first") from None
         with writer:
             for k, tk in enumerate(t):
+                # ADIOS2 aborts the process when the disk fills: stop before it can
+                _space_verdict(comm, bp.parent, 2 * per_step + (1 << 20),
+                               f"step {k + 1} of {len(t)} of {target.name}")
                 _set(f, local[:, k])
                 writer.write(float(tk))
 
-    return _replace_folder(comm, Path(path).absolute(), write)
+    with together(comm, "write_vtx"):
+        return _replace_folder(comm, target, write)
 
 
-def _checked_write(V, path, states, times, state_map, rows, fill, name, engine):
+def _checked_write(V, path, states, times, state_map, rows, fill, name, engine, overwrite):
     """write_vtx's checks, the same verdict on every rank (an InputError before anything is
-    written); returns rank 0's (states with every row, times) and the times on every rank."""
+    written); returns rank 0's states (with every row), the times and rank 0's absolute path
+    (on every rank)."""
     comm = V.mesh.comm
     problem, S, t = None, None, None
     if engine not in _ENGINES:
@@ -284,24 +411,38 @@ def _checked_write(V, path, states, times, state_map, rows, fill, name, engine):
         problem = f"name must be a non-empty string, got {name!r}"
     elif not isinstance(fill, (int, float, np.floating, np.integer)) or isinstance(fill, bool):
         problem = f"fill must be a number, got {fill!r}"
+    elif not isinstance(overwrite, (bool, np.bool_)):
+        problem = f"overwrite must be True or False, got {overwrite!r}"
+    target = None
     if problem is None and comm.rank == 0:
-        problem = _path_problem(path)
+        try:
+            target = Path(path).absolute()
+        except TypeError:
+            problem = f"path must be a str or Path ending in .bp, got {type(path).__name__}"
+        if problem is None:
+            problem = _path_problem(target, bool(overwrite))
         if problem is None:
             problem, S = _root_states(V, states, state_map, rows, fill, single=False)
         if problem is None:
             problem, t = _times_problem(times, S.shape[1])
     _verdict(comm, problem)
-    return S, (comm.bcast(t, root=0) if comm.size > 1 else t)
+    if comm.size > 1:
+        t, target = comm.bcast((t, target), root=0)
+    return S, t, target
 
 
 def _replace_folder(comm, target: Path, write) -> Path:
     """``write(folder)`` (collective) fills a new folder in a temporary directory beside
-    ``target``, which then replaces ``target`` (one ``os.replace`` on rank 0; a previous
-    version is moved aside first and put back if the move fails). On any error nothing of the
-    new folder remains and ``target`` is as it was."""
+    ``target`` (named after its owner, ``.<target>.<host>-<pid>.<random>.tmp``, so the next
+    write removes it if this process is killed), which then takes the place of ``target``
+    (:func:`~dolfinx_lopinf.core.io_atomic.swap_folder` on rank 0: atomic exchange, or a
+    recoverable two-step). On any error nothing of the new folder remains and ``target`` is
+    as it was."""
     tmp = None
     if comm.rank == 0:
-        tmp = tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        remove_stale_temporaries(target.parent, target.name)
+        tmp = tempfile.mkdtemp(prefix=temporary_prefix(target.name), suffix=".tmp",
+                               dir=target.parent)
     tmp = comm.bcast(tmp, root=0) if comm.size > 1 else tmp
     try:
         bp = Path(tmp) / target.name
@@ -309,19 +450,16 @@ def _replace_folder(comm, target: Path, write) -> Path:
         comm.barrier()
         err = None
         if comm.rank == 0:
-            old = Path(tmp) / ".previous"
             try:
-                if target.exists():
-                    os.replace(target, old)
-                os.replace(bp, target)
+                swap_folder(bp, target)
             except OSError as exc:
                 err = f"could not move the written {bp} to {target}: {exc}"
-                if old.exists() and not target.exists():
-                    os.replace(old, target)  # put the previous version back
         err = comm.bcast(err, root=0) if comm.size > 1 else err
         if err is not None:
-            raise OSError(err)
+            exc = OSError(err)
+            exc.__lopinf_collective__ = True
+            raise exc
     finally:
         if comm.rank == 0:
-            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.rmtree(tmp, ignore_errors=True)  # the new folder on error, else the old one
     return target
