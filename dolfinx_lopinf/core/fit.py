@@ -61,8 +61,9 @@ IDENTITY_SPREAD = 0.05
 ID_MAX_R = 24
 ID_RANK_RTOL = 1e-10
 #: ... and at most so many that the free fit (2r + m unknowns per row) has this many samples
-#: per unknown (fewer over-fit the truncated modes' closure error)
-ID_SAMPLES_PER_UNKNOWN = 8
+#: per unknown (fewer over-fit the truncated modes' closure error); the held-back check,
+#: which fits three quarters of the samples, twice as many
+ID_SAMPLES_PER_UNKNOWN = 4
 #: A named scheme whose relation residual exceeds the best one's by this factor is contradicted.
 MISMATCH = 3.0
 #: ... and exceeds this (below it both relations hold to the data's accuracy)
@@ -358,7 +359,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     pieces = _pieces(trajs, basis.V.T, basis.weight)
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
               "dt": dt, "requested_scheme": requested if isinstance(requested, str) else requested.spec}
-    relation, report["identification"] = _relation_for(requested, _identification_pieces(
+    relation, report["identification"] = _relation_for(requested, *_identification_pieces(
         trajs, svd, basis.r))
     relations = [relation]
     if requested == "auto" and not isinstance(relation, schemes.FiniteDifferences):
@@ -400,24 +401,30 @@ def _pieces(trajs, P, weight=None):
 
 
 def _identification_pieces(trajs, svd, r):
-    """The trajectories in the leading POD coordinates that the scheme is identified in:
-    as many as the data resolve (singular values above ID_RANK_RTOL of the largest), so the
-    truncated modes' closure error does not blur which relation holds, capped by ID_MAX_R
-    and by a quarter of the samples per unknown of the free fit; at least r."""
+    """(pieces, check_r): the trajectories in the leading POD coordinates the scheme is
+    identified in - as many as the data resolve (singular values above ID_RANK_RTOL of the
+    largest), so the truncated modes' closure error does not blur which relation holds, and
+    at most ID_MAX_R and as many as keep ID_SAMPLES_PER_UNKNOWN samples per unknown of the
+    free fit (2r + m per row) - and the number of them the held-back check uses (its free
+    fit sees three quarters of the samples)."""
     U, s = svd
     n_sig = int((s > ID_RANK_RTOL * s[0]).sum()) if s[0] > 0 else 1
     m = 0 if trajs[0].U is None else trajs[0].U.shape[0]
-    n_fit = 0.75 * sum(len(t.times) for t in trajs)  # the free fit of the held-back check
-    cap = max(1, min(ID_MAX_R, int((n_fit / ID_SAMPLES_PER_UNKNOWN - m) / 2)))
-    r_id = max(1, min(max(n_sig, min(r, cap)), cap, len(s)))
-    return _pieces(trajs, U[:, :r_id].T)
+    n_all = sum(len(t.times) for t in trajs)
+
+    def cap(n):
+        return max(1, min(ID_MAX_R, int((n / ID_SAMPLES_PER_UNKNOWN - m) / 2)))
+
+    r_id = max(1, min(max(n_sig, min(r, cap(n_all))), cap(n_all), len(s)))
+    return _pieces(trajs, U[:, :r_id].T), min(r_id, cap(0.75 * n_all / 2))
 
 
-def _relation_for(requested, pieces):
+def _relation_for(requested, pieces, check_r):
     """(the relation to fit, the identification report) for ``requested`` ("auto" or a scheme)."""
     if requested == "auto":
         members = standard_members() + [schemes.FiniteDifferences()]
-        scheme, ident = identify(pieces, members=members)
+        scheme, ident = identify(pieces, members=members, check_r=check_r)
+        ident["coordinates"] = [int(pieces[0][0].shape[0]), int(check_r)]
         return scheme, ident
     residual = Residual(pieces)
     try:

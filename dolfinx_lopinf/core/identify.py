@@ -32,7 +32,7 @@ import scipy.optimize
 from . import schemes as S
 from ..errors import InputError
 from .holdout import prediction_error, split
-from .inference import MechanicalOperators
+from .inference import MechanicalOperators, _serial_blas
 
 #: a refinement (or a less standard member) must lower the relative residual this much
 CLEAR_GAIN = 2.0
@@ -50,7 +50,7 @@ PREDICTION_FLOOR = 1e-9
 RESIDUAL_FLOOR = 1e-10
 #: Gauss-Newton iterations per refinement (it converges in a few where the data pin the
 #: parameters; where they do not, more iterations buy nothing)
-MAX_ITERATIONS = 30
+MAX_ITERATIONS = 20
 #: a refined scheme whose residual's Jacobian (columns: the parameters) has a singular-value
 #: ratio below this is reported as not determined by the data
 UNDETERMINED = 1e-3
@@ -256,7 +256,13 @@ def _refinements(residual: Residual, rho: dict):
         return min(pool, key=rho.get) if pool else None
 
     out = []
+    floor = max(min(rho.values()), RESIDUAL_FLOOR)
+
+    def promising(m):  # a family whose best member is far off cannot win: not refined
+        return m is not None and rho[m] <= SHORTLIST * floor
+
     hht, ga = best(S.HHT), best(S.GeneralizedAlpha)
+    hht = hht if promising(hht) else None
     if hht is not None:
         out.append((1, _fit(residual, lambda x: S.HHT(x[0]), [hht.alpha], [0.0], [1 / 3])))
     if ga is not None:
@@ -269,8 +275,8 @@ def _refinements(residual: Residual, rho: dict):
     two = _fit(residual, lambda x: S.GeneralizedAlpha(x[0] - x[1], x[0]), [af, af - am],
                [0.0, 0.0], [0.5, 1.0])
     out.append((2, two))
-    if residual.forced and not residual.states:
-        nm = best(S.Newmark) or S.Newmark()
+    if residual.forced and not residual.states and promising(best(S.Newmark)):
+        nm = best(S.Newmark)
         out.append((2, _fit(residual, lambda x: S.Newmark(x[0], x[1]), [nm.beta, nm.gamma],
                             [0.0, 0.5], [1.0, 1.5])))
     if residual.forced:
@@ -281,7 +287,9 @@ def _refinements(residual: Residual, rho: dict):
     return [(n,) + c for n, c in out if c is not None]
 
 
-def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25):
+@_serial_blas
+def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25,
+             check_r: int | None = None):
     """The scheme whose relation the data obey, and whose recurrence predicts them, best
     (module docstring).
 
@@ -292,7 +300,8 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
     scheme; so the members within SHORTLIST of the best rho, and the refinements, are also
     fitted (free operators) on the first ``1 - holdout`` of each trajectory and predict the
     rest with their recurrence. The first member in order whose prediction error is within
-    MARGIN of the best is kept; a refinement replaces it when it predicts CLEAR_GAIN better.
+    MARGIN of the best is the prediction's choice (a refinement replaces it when it predicts
+    CLEAR_GAIN better); it overrides the residual's choice only where that predicts worse.
 
     Args:
         pieces: [(Qh (r, K), times (K,), U (m, K_u) or None, input_times or None,
@@ -300,6 +309,8 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
         members: the schemes to compare first (default :func:`standard_members`).
         refine: refine the best members' parameters.
         holdout: the fraction held back for the prediction check (0: residuals only).
+        check_r: the prediction check's free fits use the leading ``check_r`` coordinates
+            (default all): fewer unknowns than the residual's fit, which sees every sample.
 
     Returns:
         ``(scheme, report)``; report: ``residuals`` (spec -> rho of every member),
@@ -319,7 +330,12 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
     report = {"residuals": {m.spec: v for m, v in rho.items()},
               "refined": {c.spec: v for _, c, v, _ in refined}}
     chosen, why = _by_residual(members, rho, refined, report)
-    predictions = _predictions(pieces, members, rho, best_rho, refined, holdout)
+    if check_r is not None:
+        pieces_check = [(p[0][:check_r],) + tuple(p[1:4])
+                        + tuple(None if a is None else a[:check_r] for a in p[4:]) for p in pieces]
+    else:
+        pieces_check = pieces
+    predictions = _predictions(pieces_check, members, rho, best_rho, refined, holdout)
     if predictions and not np.isfinite(predictions.get(chosen, np.inf)):
         # the free fit of the residual's choice does not even predict: the data leave the
         # free operators undetermined (e.g. repeated frequencies), so prediction cannot judge
@@ -328,7 +344,17 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
         predictions = {}
     if predictions:
         report["predictions"] = {c.spec: e for c, e in predictions.items()}
-        chosen, why = _by_prediction(members, refined, predictions, report) or (chosen, why)
+        by_prediction = _by_prediction(members, refined, predictions, report)
+        e_res = predictions.get(chosen, np.inf)
+        if by_prediction is not None and by_prediction[0] != chosen \
+                and predictions[by_prediction[0]] < e_res:
+            # the residual's choice predicts the held-back samples worse than the simplest
+            # candidate the prediction check keeps: the truncated modes' closure error, not
+            # the scheme, decided the residual (module docstring)
+            chosen, why = by_prediction[0], by_prediction[1] + f"; over {why}"
+        else:
+            why += (f"; it also predicts the held-back samples best ({e_res:.3g} with free "
+                    "operators)" if by_prediction is not None else "")
     report.update(chosen=chosen.spec, why=why, evaluations=residual.evaluations,
                   residual=residual(chosen))
     return chosen, report
