@@ -356,12 +356,10 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise InputError(f"mass must be 'identity' or 'learned', got {mass!r}")
     (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
     if mass == "learned":
-        if solver not in ("auto", "cvxpy"):
-            raise InputError(f"mass='learned' is solved by Clarabel (solver 'auto'), not {solver!r}")
         from .mass import infer_with_mass
 
         ops = infer_with_mass(Qh, dQh if damping else None, ddQh, U, damping=damping, eps=eps,
-                              ridge=ridge, strict=strict)
+                              ridge=ridge, strict=strict, solver=solver)
         return _unscaled(ops, c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
