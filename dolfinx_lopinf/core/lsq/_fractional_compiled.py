@@ -426,7 +426,7 @@ def warm_up() -> float | None:
 
 def run(problem, xs, gap_tol, max_iter):
     """fractional._run_numpy with the compiled step and estimate."""
-    from .fractional import CERTIFY_AT, STALL_GAP, STALL_RUN, STALL_STEP, _State
+    from .fractional import CERTIFY_AT, _stalled, _State
 
     K = kernels()
     ix = problem.index
@@ -444,7 +444,8 @@ def run(problem, xs, gap_tol, max_iter):
     iu1 = np.array(ix.iu[1], dtype=np.int64)
     Dw = np.ascontiguousarray(ix.Dw[:ix.nv])
     r, b = problem.r, problem.n_blocks
-    f_floor = problem.gap_reference(0.0)
+    f_floor = problem.tau_of(0.0) * r / problem.rho  # tau's floor (F_FLOOR f_scale)
+    gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
     best, best_state, trace, stopped = None, None, [], "max_iter"
     it = 0
     for it in range(1, max_iter + 1):
@@ -453,10 +454,9 @@ def run(problem, xs, gap_tol, max_iter):
             stopped = f"numerical failure at iteration {it}: Schur matrix not positive definite"
             it -= 1
             break
-        est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, f_floor)
+        est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, gap_floor)
         trace.append((float(state[2]), float(state[3]), float(est)))
-        stalled = (len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
-                   and est <= STALL_GAP * gap_tol)
+        stalled = _stalled(trace, est, gap_tol)
         if est <= CERTIFY_AT * gap_tol or stalled:
             c = problem.certify(xs, Y, state[1])
             if best is None or c["duality_gap"] < best["duality_gap"]:

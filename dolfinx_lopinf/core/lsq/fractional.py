@@ -45,7 +45,7 @@ that they are) and Omega = A - nu W > 0,
 
 a concave scalar maximisation (the generalised eigenvalues of (A, W)). The bound is smooth in
 Y - no minimum eigenvalue edge - so directions the normalisation barely weighs do not ruin it.
-``duality_gap`` = (phi - bound) / max(f, F_FLOOR f_scale).
+``duality_gap`` = (phi - bound) / max(f, GAP_FLOOR f_scale).
 """
 
 from __future__ import annotations
@@ -63,17 +63,23 @@ from .problem import Certificate
 
 #: rho of tau = rho f / r: the misfit the regulariser may trade for a well-determined mass
 RHO = 1e-2
-#: the relative gap is measured, and tau taken, against max(f, F_FLOOR f_scale) (f_scale: the
-#: misfit of M = I with no forces, the data's scale): GAP_TOL F_FLOOR = 1e-16 f_scale is the
-#: data's own rounding, below which no two fits can be told apart. On exact data (f at
-#: rounding) tau then keeps the curvature of the modal scales instead of vanishing with f
-#: (measured: the interior point stalls at ~1e-17 f_scale of complementarity there)
+#: tau = rho max(f, F_FLOOR f_scale) / r (f_scale: the misfit of M = I with no forces, the
+#: data's scale): on exact data (f at rounding) the regulariser keeps the curvature of the
+#: modal scales instead of vanishing with f (the Newton systems became singular to double
+#: precision) and trades at most rho F_FLOOR f_scale of misfit (a relative residual of 1e-5)
 F_FLOOR = 1e-8
+#: the relative gap is measured against max(f, GAP_FLOOR f_scale): GAP_TOL GAP_FLOOR =
+#: 1e-14 f_scale, 45 u f_scale - the bound's terms are ~sqrt(f f_scale) and the interior point
+#: resolves the complementarity of near-exact fits to ~1e-15 f_scale (measured: the quick
+#: Newmark cantilever at r = 20, f = 1e-10 f_scale, stalls there)
+GAP_FLOOR = 1e-6
 STEP_FRACTION = 0.98
 #: certify when the complementarity gap estimate is below CERTIFY_AT x gap_tol; a stall is
 #: STALL_RUN steps in a row shorter than STALL_STEP once the estimate is below STALL_GAP x
 #: gap_tol (the rounding of the Newton systems near the optimum; earlier short steps recover)
 CERTIFY_AT, STALL_STEP, STALL_RUN, STALL_GAP = 1.0, 0.05, 3, 1e3
+#: ... or no progress: the estimate not halved over STALL_FLAT iterations (below STALL_GAP)
+STALL_FLAT = 6
 SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
 
 
@@ -130,7 +136,7 @@ def schur_terms(Mi, Ym, Y, Om, s, L, r, b) -> dict:
 class FractionalProblem:
     """min f - tau log det(M - F_0), f = tr((Theta L)^T M^-1 Theta L), <W, M> = 1,
     S_k >= F_k (module docstring). ``rho``: tau = rho f / r at the answer; ``f_scale``: the
-    misfit scale the gap floor refers to (F_FLOOR f_scale)."""
+    misfit scale the floors refer to (GAP_FLOOR f_scale, F_FLOOR f_scale)."""
 
     L: np.ndarray
     W: np.ndarray
@@ -178,11 +184,11 @@ class FractionalProblem:
         return float(np.sum(V * scipy.linalg.cho_solve(c, V)))
 
     def gap_reference(self, f) -> float:
-        return max(f, F_FLOOR * self.f_scale, 1e-300)
+        return max(f, GAP_FLOOR * self.f_scale, 1e-300)
 
     def tau_of(self, f) -> float:
         """tau = rho max(f, F_FLOOR f_scale) / r (F_FLOOR: exact data)."""
-        return self.rho * self.gap_reference(f) / self.r
+        return self.rho * max(f, F_FLOOR * self.f_scale, 1e-300) / self.r
 
     def certify(self, xs, Y, tau) -> dict:
         """The certificate of the slacks x with the dual Y (module docstring): ``duality_gap``
@@ -346,6 +352,16 @@ class MassInteriorPoint:
         return xs, Y, tau, cert
 
 
+def _stalled(trace, est, gap_tol) -> bool:
+    """STALL_RUN short steps, or STALL_FLAT iterations without halving the estimate, once it
+    is below STALL_GAP gap_tol."""
+    if est > STALL_GAP * gap_tol:
+        return False
+    short = len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
+    flat = len(trace) > STALL_FLAT and est > 0.5 * trace[-STALL_FLAT - 1][2]
+    return short or flat
+
+
 def _run_numpy(problem, xs, gap_tol, max_iter):
     """The iteration (module docstring): (x, Y, tau, iterations, best certificate, why it
     stopped, trace of (step, sigma, gap estimate))."""
@@ -361,8 +377,7 @@ def _run_numpy(problem, xs, gap_tol, max_iter):
             break
         est = state.gap_estimate()
         trace.append((a, sigma, est))
-        stalled = (len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
-                   and est <= STALL_GAP * gap_tol)
+        stalled = _stalled(trace, est, gap_tol)
         if est <= CERTIFY_AT * gap_tol or stalled:
             c = problem.certify(state.xs, state.Y, state.tau)
             if best is None or c["duality_gap"] < best["duality_gap"]:
