@@ -174,12 +174,13 @@ def test_the_interior_point_agrees_with_clarabel_on_the_same_problem(seed, noise
     scale = p.misfit(xs)
     assert ref >= cert.details["bound"] - 1e-9 * scale   # Clarabel cannot beat the proof
     assert ours <= ref + 1e-6 * scale                   # and we are at least as good
-    # the dynamics agree, to the reference's accuracy (measured: 3e-5 relative with Clarabel's
-    # tightest tolerances; two of our fits in different coordinates agree to 1e-8)
+    # the dynamics agree, to the reference's accuracy (measured: M^-1 K to 5e-5 relative with
+    # Clarabel's tightest tolerances; M^-1 C, weakly determined by noisy damping data, to
+    # 1.3e-3 at seed 3 - our own fits at gaps 5e-9 and 1e-11 differ by 3e-3 there)
     r = p.r
-    for k in range(1, p.n_blocks):
+    for k, tol in ((1, 1e-3), (2, 1e-2)):
         X, Y = (np.linalg.solve(th[:, :r], th[:, k * r:(k + 1) * r]) for th in (p.theta(xs), theta_ref))
-        assert np.allclose(X, Y, rtol=1e-3, atol=1e-3 * np.abs(Y).max())
+        assert np.allclose(X, Y, rtol=tol, atol=tol * np.abs(Y).max())
 
 
 def test_learned_mass_solver_cvxpy_is_the_reference_path():
@@ -240,3 +241,43 @@ def test_compiled_iteration_is_the_numpy_iteration(backend):
         assert a[3].converged and b[3].converged
         assert abs(a[3].iterations - b[3].iterations) <= 1
         assert abs(p.misfit(a[0]) - p.misfit(b[0])) <= 1e-9 * p.misfit(a[0])
+
+
+@pytest.mark.parametrize("kind", ["modal", "chainpod", "active"])
+@pytest.mark.parametrize("r", [2, 4, 8, 12])
+def test_held_out_style_sets_are_certified(kind, r):
+    """The benchmark's learned-mass kinds (non-identity mass, POD coordinates with an
+    ill-conditioned W, active K and C floors): certified to 1e-8 at every r."""
+    from dolfinx_lopinf.studies.benchmark_mass import mass_data
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
+        cert = lo.infer_mechanical(*mass_data(kind, r), mass="learned").certificate
+    assert cert["certified"] and cert["duality_gap"] <= 1e-8, cert
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["modal", "chainpod", "active"])
+@pytest.mark.parametrize("r", [16, 20])
+def test_held_out_style_sets_are_certified_at_large_r(kind, r):
+    test_held_out_style_sets_are_certified(kind, r)
+
+
+@pytest.mark.parametrize("kind,r", [("chainpod", 8), ("active", 8)])
+def test_rounding_does_not_decide_the_fit(kind, r):
+    """Every input perturbed at 1e-15 relative (the rounding of another BLAS): still certified,
+    the same iterations within a few, the dynamics M^-1 K, M^-1 C, M^-1 B to 1e-6 - on an
+    ill-conditioned W (chainpod) and with floors active (active)."""
+    from dolfinx_lopinf.studies.benchmark_mass import mass_data
+
+    data = mass_data(kind, r)
+    rng = np.random.default_rng(7)
+    bent = [X * (1.0 + 1e-15 * rng.standard_normal(X.shape)) for X in data]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
+        a, b = (lo.infer_mechanical(*d, mass="learned") for d in (data, bent))
+    assert a.certificate["certified"] and b.certificate["certified"]
+    assert abs(a.certificate["iterations"] - b.certificate["iterations"]) <= 4
+    for X, Y in zip((a.K, a.C, a.B), (b.K, b.C, b.B)):
+        X, Y = np.linalg.solve(a.M, X), np.linalg.solve(b.M, Y)
+        assert np.allclose(X, Y, rtol=1e-6, atol=1e-6 * np.abs(X).max())

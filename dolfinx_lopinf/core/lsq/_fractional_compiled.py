@@ -365,7 +365,7 @@ def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f
     Mi, okM = _spd_inv(M)
     f = np.sum(V * np.dot(Mi, V)) if okM else np.inf
     state[0] = nu + al * dnu
-    state[1] = rho * max(f, f_floor, 1e-300) / r
+    state[1] = min(tau, rho * max(f, f_floor, 1e-300) / r)  # tau never rises (fractional)
     state[2] = al
     state[3] = sigma
 

@@ -14,7 +14,9 @@ linear in those scales, so its exact minimiser pushes all but one mode onto the 
 (measured: the exact optimum of the Newmark cantilever has M's eigenvalues 1e-8 .. 1 and
 predicts worse than an inexact solver's stopping point). The log-det term - the analytic
 centre of the near-optimal set - makes it well posed and coordinate invariant (log det
-changes by a constant under M -> T^T M T); tau = rho f / r at the answer (a fixed point), so
+changes by a constant under M -> T^T M T); tau = rho f / r at the answer (a fixed point,
+followed as f falls and never raised: an early rise of f - the primal trading misfit for
+centrality - would move the floor's target away from its multiplier and jam the steps), so
 that f exceeds its unregularised minimum by at most about rho f (the multiplier of the floor
 is feasible for the unregularised dual: ``misfit_gap`` certifies it).
 
@@ -558,7 +560,7 @@ class _State:
         self.Lam = Lam + a * dc["dL"]
         self.Om = Om + a * dc["dOm"] - a * a * dc["dY"] @ dc["dY"].T
         self.Y = Y + a * dc["dY"]
-        self.tau = p.tau_of(p.misfit(self.xs))
+        self.tau = min(self.tau, p.tau_of(p.misfit(self.xs)))
         return a, sigma
 
 
