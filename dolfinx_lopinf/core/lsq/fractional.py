@@ -316,7 +316,11 @@ def start(problem: FractionalProblem):
         R = scipy.linalg.qr(A, mode="r", check_finite=False)[0]
         pN = (b - 1) * r
         H, h = symmetric_normal_equations(R[:pN, :pN].T, R[:pN, pN:].T, b - 1)
-        xN = -np.linalg.lstsq(H, h, rcond=None)[0]
+        try:  # H > 0 on data that determine N (one Cholesky), else the least-norm solution
+            xN = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, check_finite=False), h,
+                                         check_finite=False)
+        except np.linalg.LinAlgError:
+            xN = -np.linalg.lstsq(H, h, rcond=None)[0]
         blocks += list(vech_index(r, b - 1).blocks(xN))
     X = np.stack(blocks) - problem.floors
     w, Q = np.linalg.eigh(X)
