@@ -456,9 +456,11 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
             floor of 1e-10, 2.8e-4 with 1e-13, 2.6e-4 with 0 (Galerkin ROM 2.15e-4).
         ridge: relative Tikhonov parameter on the column-normalised data.
         solver: ``"cvxpy"`` (default): every constrained fit by Clarabel; ``"ipm"``: the
-            "sos" fit by our interior point (:mod:`dolfinx_lopinf.core.polynomial_sos`: 4-5x
-            faster on the test systems, the same residual, but its certificate stalls near
-            1e-6 relative and on exact data its coefficients are 2e-4 off - not yet the default).
+            "sos" fit by our interior point (:mod:`dolfinx_lopinf.core.polynomial_sos`: faster
+            than Clarabel on the noisy test systems with the same residual, but its certificate
+            stalls near 1e-6 relative, and on near-exact data - exact data's coefficients 2e-4
+            off; the SVK cantilever's probes at r = 4 left at relative residual 3e-5 against
+            Clarabel's 3e-9 - it is not certified: not yet the default).
         strict: raise SolverFailedError when a constrained fit is not certified.
 
     Returns:

@@ -127,9 +127,16 @@ class QuadraticPSD:
     def _H_factor(self):
         H = self.H if self.null is None else self.H + self.null @ self.null.T  # H+ on range(H)
         d = 1.0 / np.sqrt(np.diag(H))
-        return scipy.linalg.cho_factor(H * d[:, None] * d[None, :], lower=True, check_finite=False), d
+        try:
+            return scipy.linalg.cho_factor(H * d[:, None] * d[None, :], lower=True, check_finite=False), d
+        except np.linalg.LinAlgError:  # singular beyond the null space found: no bound
+            return None
 
     def H_solve(self, v):
+        """H^-1 v (H + N N^T with a null space N), or None where H is not positive definite
+        numerically (a flat direction not in N: the dual function is unbounded there)."""
+        if self._H_factor is None:
+            return None
         c, d = self._H_factor
         return d * scipy.linalg.cho_solve(c, d * v, check_finite=False)
 
@@ -162,7 +169,10 @@ class QuadraticPSD:
         v = self.gradient(x) - self.lin(Lam)
         comp = sum(float(np.sum(Lk * Xk)) for Lk, Xk in zip(Lam, self.slacks(x)))
         f = self.objective(x)
-        return max(0.25 * float(v @ self.H_solve(v)) + comp, 0.0) / self.reference(f)
+        Hv = self.H_solve(v)
+        if Hv is None:
+            return np.inf
+        return max(0.25 * float(v @ Hv) + comp, 0.0) / self.reference(f)
 
     def reference(self, f) -> float:
         """The gap's reference: max(f + f_const, GAP_FLOOR f_scale)."""
