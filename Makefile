@@ -56,7 +56,8 @@ test-fast: venv
 # POD perturbed at 1e-15 relative (seeded; tests/conftest.py) and two BLAS threads. A verdict
 # that changes here was decided by rounding.
 CORE_TESTS = tests/core/test_engine.py tests/core/test_numpy_core.py tests/core/test_rank.py \
-	tests/core/test_inputs_core.py tests/core/test_fit.py tests/core/test_polynomial_fit.py
+	tests/core/test_inputs_core.py tests/core/test_fit.py tests/core/test_polynomial_fit.py \
+	tests/core/test_mass.py
 test-rounding: venv
 	LOPINF_TEST_PERTURB=1e-15 OPENBLAS_NUM_THREADS=2 OMP_NUM_THREADS=2 $(PY) -m pytest -q $(CORE_TESTS)
 

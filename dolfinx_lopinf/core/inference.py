@@ -82,7 +82,9 @@ class MechanicalOperators:
     Attributes:
         K: (r, r) stiffness.  C: (r, r) damping or None.  B: (r, m) input or None.
         M: (r, r) learned reduced mass (``mass="learned"``), None when it is fixed to I.
-        certificate: how the solve went, a dict: ``solver``, ``status``, ``objective`` (the
+        certificate: how the solve went, a dict: ``solver``, ``certified`` (the duality gap
+            met its tolerance, 1e-8 by default, and the operators are feasible),
+            ``duality_gap`` (relative), ``iterations``, ``seconds``, ``status``, ``objective`` (the
             squared residual norm ||ddQh + K Qh + C dQh - B U||_F^2), ``relative_residual``,
             ``min_eig_K``/``min_eig_C``, ``symmetry_error``, ``seconds``, and the fields of
             the solver's :class:`~dolfinx_lopinf.core.lsq.Certificate` (``iterations``,
@@ -96,6 +98,8 @@ class MechanicalOperators:
     M: np.ndarray | None = None
 
 
+#: The relative duality gap below which a fit is ``certified`` (the engine's default).
+GAP_TOL = 1e-8
 #: Relative Tikhonov parameter of every fit (see :func:`gram_data`): directions of the
 #: row-normalised data whose singular value is below ``RIDGE`` times the largest are not
 #: determined by double-precision data; the ridge decides them (towards zero) instead of
@@ -331,7 +335,9 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         ridge: relative Tikhonov parameter that decides the directions the data do not
             determine (see :func:`gram_data`); 0 turns it off.
         strict: raise :class:`~dolfinx_lopinf.errors.RankDeficientDataError` when the data
-            do not determine every operator entry, instead of warning and regularising.
+            do not determine every operator entry, instead of warning and regularising, and
+            :class:`~dolfinx_lopinf.errors.SolverFailedError` when the fit is not certified
+            (duality gap above its tolerance) instead of returning it with a warning.
         mass: ``"identity"`` (Mh = I: right in a mass-orthonormal basis) or ``"learned"``
             (Mh symmetric positive definite, fitted with the others by a convex problem
             whose answer does not depend on the coordinates of the reduced space - use it
@@ -356,12 +362,10 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise InputError(f"mass must be 'identity' or 'learned', got {mass!r}")
     (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
     if mass == "learned":
-        if solver not in ("auto", "cvxpy"):
-            raise InputError(f"mass='learned' is solved by Clarabel (solver 'auto'), not {solver!r}")
         from .mass import infer_with_mass
 
         ops = infer_with_mass(Qh, dQh if damping else None, ddQh, U, damping=damping, eps=eps,
-                              ridge=ridge, strict=strict)
+                              ridge=ridge, strict=strict, solver=solver)
         return _unscaled(ops, c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
@@ -377,6 +381,11 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             ops = _solve_constrained(gram, eps, lsq.Auto())
     else:
         ops = _solve_constrained(gram, eps, lsq.Auto(named) if named else solver)
+    if strict and not ops.certificate.get("certified", False) and named != "lyapunov":
+        c = ops.certificate
+        raise SolverFailedError(f"the fit is not certified ({c['solver']}: duality gap "
+                                f"{c.get('duality_gap', float('nan')):.2e}, status {c['status']}); "
+                                "strict=True asks for an error instead of an uncertified model")
     return _unscaled(ops, c_state, c_input)
 
 
@@ -422,8 +431,11 @@ def _solve_lyapunov(gram: GramData, eps: float) -> MechanicalOperators:
     X = gram.Z @ gram.L.T
     grad = K @ G + G @ K + X + X.T
     cert["stationarity"] = float(np.linalg.norm(grad) / max(np.linalg.norm(2 * X), 1e-300))
-    if cert["min_eig_K"] < eps:
+    feasible = cert["min_eig_K"] >= eps
+    if not feasible:
         cert["status"] = "infeasible: the symmetric minimiser has min eigenvalue < eps"
+    # the unconstrained symmetric minimiser, exact: optimal (gap 0) when it is feasible
+    cert.update(duality_gap=0.0 if feasible else float("inf"), certified=bool(feasible), iterations=0)
     return MechanicalOperators(K, None, None, cert)
 
 
@@ -456,6 +468,9 @@ def _solve_constrained(gram: GramData, eps: float, strategy) -> MechanicalOperat
     cert.update({k: v for k, v in solved.as_dict().items() if k != "seconds"})
     cert.update(problem.kkt(np.hstack([K] + ([C] if C is not None else [])
                                       + ([-B] if B is not None else []))))
+    gap = solved.duality_gap
+    cert["certified"] = bool(solved.converged and gap is not None
+                             and gap <= getattr(strategy, "gap_tol", GAP_TOL))
     if not solved.converged:
         warnings.warn(f"{solved.solver} stopped after {solved.iterations} iterations without "
                       "meeting its tolerance; see the certificate's KKT residuals", SolverWarning,
@@ -485,16 +500,21 @@ def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
     theta = cp.hstack(blocks) if len(blocks) > 1 else K
     zn = np.linalg.norm(gram.Z)
     prob = cp.Problem(cp.Minimize(cp.sum_squares(theta @ (gram.L * s / zn) + gram.Z / zn)), cons)
+    from .mass import clarabel
+
     t0 = time.perf_counter()
-    prob.solve(solver=cp.CLARABEL)
+    try:
+        raw = clarabel(cp, prob)
+    except SolverFailedError as exc:
+        raise SolverFailedError(f"cvxpy/Clarabel failed on the L-OpInf problem: {exc}") from exc
     seconds = time.perf_counter() - t0
-    if prob.status not in ("optimal", "optimal_inaccurate"):
-        raise SolverFailedError(f"cvxpy/Clarabel failed on the L-OpInf problem: status {prob.status}")
     Kv = s * K.value
     Kv = 0.5 * (Kv + Kv.T)
     Cv = None if C is None else s * 0.5 * (C.value + C.value.T)
     Bv = None if negB is None else -s * negB.value
     cert = _certificate(gram, Kv, Cv, Bv, "cvxpy-clarabel", prob.status, seconds, eps)
+    cert.update(duality_gap=raw["relative_gap"], iterations=raw["iterations"],
+                certified=bool(prob.status == "optimal" and raw["relative_gap"] <= GAP_TOL))
     if prob.status != "optimal":
         warnings.warn(f"Clarabel returned {prob.status}; check the certificate", SolverWarning,
                       stacklevel=2)
@@ -517,7 +537,9 @@ def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True, ridge: float = R
     theta = -scipy.linalg.solve_triangular(gram.L, gram.Z.T, trans="T", lower=True).T
     seconds = time.perf_counter() - t0
     K, C, B = _split_theta(theta, gram.r, gram.m, damping)
-    ops = MechanicalOperators(K, C, B, _certificate(gram, K, C, B, "lstsq", "optimal", seconds, None))
+    cert = _certificate(gram, K, C, B, "lstsq", "optimal", seconds, None)
+    cert.update(duality_gap=0.0, certified=True, iterations=0)  # the exact least squares
+    ops = MechanicalOperators(K, C, B, cert)
     return _unscaled(ops, c_state, c_input)
 
 
@@ -552,7 +574,8 @@ def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False, ridge: floa
     gram = gram_data(Qh, None, target, damping=False, ridge=ridge, strict=strict)
     ops = _unscaled(_solve_lyapunov(gram, -np.inf), c_state, 1.0)
     Kh = -ops.K
-    cert = dict(ops.certificate, min_eig_K=float(np.linalg.eigvalsh(Kh).min()), status="optimal")
+    cert = dict(ops.certificate, min_eig_K=float(np.linalg.eigvalsh(Kh).min()), status="optimal",
+                duality_gap=0.0, certified=True)  # unconstrained: the exact minimiser
     return MechanicalOperators(Kh, None, None, cert)
 
 

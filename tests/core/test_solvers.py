@@ -561,3 +561,39 @@ def test_barrier_reports_the_certified_bound(max_newton):
     assert cert.converged == (cert.duality_gap <= 1e-8)
     assert cert.converged == (max_newton == 200)
     assert "central_path_gap" in cert.details
+
+
+# -- one certificate vocabulary (issue 28) ------------------------------------------------
+
+def _forced(r=4, n=2000, seed=0):
+    from dolfinx_lopinf.studies.benchmark import mechanical_data
+    return mechanical_data("forced", r, n, seed)
+
+
+@pytest.mark.parametrize("solver", ["auto", "admm", "cvxpy", "lyapunov"])
+def test_every_fit_reports_one_certificate_vocabulary(solver):
+    """duality_gap (relative), certified, solver, iterations, seconds - whichever path."""
+    if solver == "cvxpy":
+        pytest.importorskip("cvxpy")
+    Qh, dQh, ddQh, U = _forced()
+    args = (Qh, None, ddQh) if solver == "lyapunov" else (Qh, dQh, ddQh, U)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cert = lo.infer_mechanical(*args, solver=solver, damping=solver != "lyapunov").certificate
+    for key in ("duality_gap", "certified", "solver", "iterations", "seconds"):
+        assert key in cert, (solver, key)
+    assert cert["certified"] == (cert["duality_gap"] <= 1e-8 and cert["status"] in ("optimal",)
+                                 or (solver == "lyapunov" and cert["duality_gap"] == 0.0)), cert
+    for other in (lo.infer_opinf(Qh, dQh, ddQh, U).certificate,):
+        assert other["certified"] and other["duality_gap"] == 0.0
+
+
+def test_strict_raises_instead_of_returning_an_uncertified_fit():
+    Qh, dQh, ddQh, U = _forced(6)
+    stopped_early = lsq.PSDBlocks(method="admm", max_iter=2)
+    with pytest.warns(lo.errors.SolverWarning):
+        cert = lo.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early).certificate
+    assert not cert["certified"]
+    with pytest.raises(lo.errors.SolverFailedError, match="not certified"):
+        lo.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early, strict=True)
+    assert lo.infer_mechanical(Qh, dQh, ddQh, U, strict=True).certificate["certified"]

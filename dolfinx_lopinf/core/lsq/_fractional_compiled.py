@@ -1,0 +1,473 @@
+"""The learned-mass interior point's iteration (:mod:`.fractional`) compiled with numba.
+
+One call of ``_step`` is one predictor-corrector iteration of ``fractional._State.step``, the
+same arithmetic in the same order (numba's np.linalg is LAPACK, as numpy's): the Kronecker
+kernels of the Schur matrix gathered from one matrix product per block pair, the
+equilibrated Cholesky with the numpy path's diagonal shifts, the refined directions, the
+exact pencil step lengths and the update; ``_estimate`` is ``_State.gap_estimate``. Python
+keeps the loop, the certificate (``FractionalProblem.certify``, called a few times per fit)
+and the stall test, so the iterates agree with the numpy path to rounding (tests). Kernels
+compile on first use with ``cache=True`` (:func:`warm_up`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import compiled as _jit
+
+STEP_FRACTION = 0.98  # fractional.STEP_FRACTION
+SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)  # fractional.SHIFTS
+_potrf = _cs = _chol_inv = _pd = _min_eig = None  # lsq._compiled's kernels, bound by kernels()
+
+# --------------------------------------------------------------------------------------------
+# Kernel source (plain Python; compiled by kernels())
+# --------------------------------------------------------------------------------------------
+
+
+def _sym(A):
+    return 0.5 * (A + A.T)
+
+
+def _theta(x, full, r, b):
+    """Theta (r, b r) from the vech unknowns x (b blocks)."""
+    nv = x.shape[0] // b
+    th = np.empty((r, b * r))
+    for k in range(b):
+        for i in range(r):
+            for j in range(r):
+                th[i, k * r + j] = x[k * nv + full[i, j]]
+    return th
+
+
+def _vech_blocks(G, iu0, iu1, Dw, r, b, out):
+    """out = Dw * vech(sym(G_k)) for the b column blocks of G (r, b r)."""
+    nv = iu0.shape[0]
+    for k in range(b):
+        for p in range(nv):
+            i, j = iu0[p], iu1[p]
+            out[k * nv + p] = Dw[p] * 0.5 * (G[i, k * r + j] + G[j, k * r + i])
+
+
+def _blocks(x, full, r, b):
+    nv = x.shape[0] // b
+    X = np.empty((b, r, r))
+    for k in range(b):
+        for i in range(r):
+            for j in range(r):
+                X[k, i, j] = x[k * nv + full[i, j]]
+    return X
+
+
+def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
+    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel)."""
+    r = Ps.shape[1]
+    nv = iu0.shape[0]
+    Pm = np.empty((r * r, nt))
+    Qm = np.empty((nt, r * r))
+    for t in range(nt):
+        c = coefs[t]
+        for i in range(r):
+            for j in range(r):
+                Pm[i * r + j, t] = c * Ps[t, i, j]
+                Qm[t, i * r + j] = Qs[t, i, j]
+    Phi = np.dot(Pm, Qm)
+    for p in range(nv):
+        i, j = iu0[p], iu1[p]
+        cp = 0.5 if i == j else 1.0
+        for q in range(nv):
+            a, bb = iu0[q], iu1[q]
+            cq = 0.5 if a == bb else 1.0
+            H[ro + p, co + q] = cp * cq * (Phi[j * r + a, bb * r + i] + Phi[j * r + bb, a * r + i]
+                                           + Phi[i * r + a, bb * r + j] + Phi[i * r + bb, a * r + j])
+
+
+def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
+    """The Schur matrix (fractional.schur_terms + the floors' kernels) into H."""
+    nv = iu0.shape[0]
+    D = Ym - Y
+    JY = L.copy()
+    Jm = L.copy()
+    for i in range(r):
+        for j in range(L.shape[1]):
+            JY[i, j] -= Y[i, j]
+            Jm[i, j] -= Ym[i, j]
+    GY = np.dot(JY, JY.T)
+    GmY = np.dot(Jm, JY.T)
+    LJY = np.dot(L, JY.T)
+    h = 0.5 / s
+    DYm = np.dot(D, Ym.T)
+    DYt = np.dot(D, Y.T)
+    Ps = np.empty((9, r, r))
+    Qs = np.empty((9, r, r))
+    coefs = np.empty(9)
+    for k in range(b):
+        for l in range(b):
+            ks, ls = slice(k * r, (k + 1) * r), slice(l * r, (l + 1) * r)
+            Ps[0], Qs[0], coefs[0] = Mi, GY[ls, ks], 1.0
+            Ps[1], Qs[1], coefs[1] = Om, GmY[ls, ks], 1.0 / s
+            Ps[2], Qs[2], coefs[2] = DYm, GY[ls, ks], h
+            Ps[3], Qs[3], coefs[3] = np.dot(D, L[ls].T), np.dot(Y, JY[ks].T), h
+            Ps[4], Qs[4], coefs[4] = np.dot(D, JY[ls].T), np.dot(Ym, JY[ks].T), -h
+            Ps[5], Qs[5], coefs[5] = DYt, LJY[ls, ks], -h
+            nt = 6
+            if k == 0 and l == 0:
+                Ps[nt], Qs[nt], coefs[nt] = Mi, Om, 1.0
+                nt += 1
+            if k == 0:
+                Ps[nt], Qs[nt], coefs[nt] = np.dot(D, Jm[ls].T), Om, -1.0 / s
+                nt += 1
+            if k == l:
+                Ps[nt], Qs[nt], coefs[nt] = Xi[k], Lam[k], 1.0
+                nt += 1
+            _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, k * nv, l * nv)
+
+
+def _lin_parts(dx, full, r, b, L, JY, Jm, Ym, Y, Mi, Om, D, s):
+    dth = _theta(dx, full, r, b)
+    dM = np.ascontiguousarray(dth[:, :r])
+    dV = np.dot(dth, L)
+    dW = np.dot(dth, JY)
+    dWm = np.dot(dth, Jm)
+    kap = np.dot(Ym.T, dW) + np.dot(dV.T, Y)
+    kap = 0.5 * (kap - kap.T)
+    dY = 0.5 * np.dot(Mi, dW) + (np.dot(D, kap) + np.dot(Om, dWm)) / (2.0 * s)
+    dOm = -_sym(np.dot(np.dot(Mi, dM), Om)) + _sym(np.dot(np.dot(D, dWm.T), Om)) / s
+    return dM, dV, dW, dWm, dY, dOm
+
+
+def _chol_solve(c, dd, v):
+    """dd * (C C^T)^-1 (dd * v) for the lower factor C of c's F-ordered view (LAPACK dpotrf in
+    place: lsq._compiled._potrf), two BLAS dtrsv (_compiled._chol_solve)."""
+    iw = np.zeros(4, dtype=np.int32)
+    ch = np.array([76, 78, 84], dtype=np.uint8)
+    y = dd * v
+    _cs(c, y, iw, ch)
+    return dd * y
+
+
+def _inv_chol(A):
+    """(S = R^-1, ok) for the lower Cholesky factor R of A (lsq._compiled._chol_inv)."""
+    r = A.shape[0]
+    S = np.zeros((r, r))
+    Lw = np.zeros((r, r))
+    ok = _chol_inv(A, S, Lw)
+    return S, ok
+
+
+def _spd_inv(A):
+    S, ok = _inv_chol(A)
+    return np.dot(S.T, S), ok
+
+
+def _pencil(A):
+    """1 / max(0, -lambda_min(A)) capped at 1 for the symmetric A = R^-1 E R^-T (A + I > 0:
+    1 without an eigenvalue; lsq._compiled's Householder + bisection otherwise)."""
+    q = A.shape[0]
+    Lw = np.zeros((q, q))
+    if _pd(A, 1.0, Lw):
+        return 1.0
+    ev = _min_eig(A.copy(), np.empty(q), np.empty(max(q - 1, 1)))
+    return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
+
+
+def _direction(Xc, RX, D, Ym, Y, Om, JY, Jm, Mi, Xi, Lam, rD, rp, a, Ha, gam, c, dd, s, full, iu0,
+               iu1, Dw, L, r, b):
+    """fractional._State.step's direction (one refinement against the operator)."""
+    n = rD.shape[0]
+    Ip = np.eye(b * r)
+    X11 = np.ascontiguousarray(Xc[:r, :r])
+    X12 = np.ascontiguousarray(Xc[:r, r:])
+    X22 = np.ascontiguousarray(Xc[r:, r:])
+    dYc = 0.5 * D - X12 - 0.5 * np.dot(Ym + Y, X22)
+    C11 = -Om + X11 + 2.0 * _sym(np.dot(X12, Y.T)) + np.dot(np.dot(Y, X22), Y.T)
+    Gd = 2.0 * np.dot(dYc, JY.T)
+    Gd[:, :r] -= C11
+    for k in range(b):
+        Gd[:, k * r:(k + 1) * r] -= np.dot(Xi[k], RX[k])
+    rhs = np.empty(n)
+    _vech_blocks(Gd, iu0, iu1, Dw, r, b, rhs)  # sym(Xi RX): the vech of the sym part
+    rhs = -rD - rhs + gam * rp * a
+    dx = _chol_solve(c, dd, rhs)
+    dnu = (rp - np.dot(a, dx)) / np.dot(a, Ha)
+    dx = dx + dnu * Ha
+    # one refinement against the operator itself
+    dM, dV, dW, dWm, dYl, dOml = _lin_parts(dx, full, r, b, L, JY, Jm, Ym, Y, Mi, Om, D, s)
+    Gl = 2.0 * np.dot(dYl, JY.T)
+    Gl[:, :r] -= dOml
+    dXb = _blocks(dx, full, r, b)
+    for k in range(b):
+        Gl[:, k * r:(k + 1) * r] += np.dot(np.dot(Xi[k], dXb[k]), Lam[k])
+    lin = np.empty(n)
+    _vech_blocks(Gl, iu0, iu1, Dw, r, b, lin)
+    lin += gam * a * np.dot(a, dx)
+    res = rhs - (lin - dnu * a)
+    e = _chol_solve(c, dd, res)
+    de = -np.dot(a, e) / np.dot(a, Ha)
+    dx = dx + e + de * Ha
+    dnu = dnu + de
+    dM, dV, dW, dWm, dYl, dOml = _lin_parts(dx, full, r, b, L, JY, Jm, Ym, Y, Mi, Om, D, s)
+    dX = _blocks(dx, full, r, b)
+    dL = np.empty((b, r, r))
+    for k in range(b):
+        dL[k] = _sym(np.dot(Xi[k], RX[k] - np.dot(dX[k], Lam[k])))
+    rho_ = X22 - Ip
+    dT22 = s * rho_ - _sym(np.dot(dWm.T, D))
+    dT = s * rho_ + _sym(np.dot(Ym.T, dW) + np.dot(dV.T, Y))
+    return dx, dnu, dM, dV, dWm, dYc + dYl, C11 + dOml, dT22, dT, dX, dL
+
+
+
+def _steps(SM, SO, SX, SL, s, dM, dWm, dT22, dY, dOm, dX, dL, r, b):
+    """The largest step keeping Z, U (their pencils: diag(M, s I) and diag(Omega, I) factored)
+    and the floors in their cones; S*: the inverse Cholesky factors."""
+    pp = b * r
+    q = r + pp
+    isq = 1.0 / np.sqrt(s)
+    Az = np.empty((q, q))
+    Az[:r, :r] = np.dot(np.dot(SM, dM), SM.T)
+    Az[:r, r:] = np.dot(SM, dWm) * isq
+    Az[r:, :r] = Az[:r, r:].T
+    Az[r:, r:] = dT22 * (isq * isq)
+    As = np.zeros((q, q))
+    As[:r, :r] = np.dot(np.dot(SO, dOm), SO.T)
+    As[:r, r:] = -np.dot(SO, dY)
+    As[r:, :r] = As[:r, r:].T
+    out = min(_pencil(_sym(Az)), _pencil(_sym(As)))
+    for k in range(b):
+        out = min(out, _pencil(_sym(np.dot(np.dot(SX[k], dX[k]), SX[k].T))),
+                  _pencil(_sym(np.dot(np.dot(SL[k], dL[k]), SL[k].T))))
+    return out
+
+
+
+def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f_floor):
+    """fractional._State.step in place: state = [nu, tau, step, sigma, failure (1.0)]."""
+    nv = iu0.shape[0]
+    n = b * nv
+    pp = b * r
+    q = r + pp
+    nu, tau = state[0], state[1]
+    th = _theta(xs + x_floor, full, r, b)
+    M = np.ascontiguousarray(th[:, :r])
+    V = np.dot(th, L)
+    SM, okM = _inv_chol(M)
+    SO, okO = _inv_chol(Om)
+    if not (okM and okO):
+        state[4] = 1.0
+        return
+    Mi = np.dot(SM.T, SM)
+    Ym = np.dot(Mi, V)
+    D = Ym - Y
+    s = (np.sum(M * Om) + np.sum(np.dot(M, D) * D)) / r
+    X = _blocks(xs, full, r, b)
+    G = 2.0 * np.dot(Y, L.T)
+    G[:, :r] -= Om + np.dot(Y, Y.T)
+    for k in range(b):
+        G[:, k * r:(k + 1) * r] -= Lam[k]
+    rD = np.empty(n)
+    _vech_blocks(G, iu0, iu1, Dw, r, b, rD)
+    rD -= nu * a
+    rp = (1.0 - np.dot(a, x_floor)) - np.dot(a, xs)
+    fl = 0.0
+    for k in range(1, b):
+        fl += np.sum(X[k] * Lam[k])
+    mu = (q * s + fl) / (q + (b - 1) * r)
+    Xi = np.empty((b, r, r))
+    SX = np.empty((b, r, r))
+    SL = np.empty((b, r, r))
+    for k in range(b):
+        SX[k], okX = _inv_chol(X[k])
+        SL[k], okL = _inv_chol(Lam[k])
+        if not (okX and okL):
+            state[4] = 1.0
+            return
+        Xi[k] = np.dot(SX[k].T, SX[k])
+    H = np.empty((n, n))
+    _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H)
+    H = 0.5 * (H + H.T)
+    d0 = 1.0 / np.sqrt(np.diag(H))
+    ad = a * d0
+    gam = 1.0 / np.dot(ad, ad)
+    for i in range(n):
+        for j in range(n):
+            H[i, j] += gam * a[i] * a[j]
+    dd = 1.0 / np.sqrt(np.diag(H))
+    Hs = H * np.outer(dd, dd)
+    c = np.empty((n, n))
+    ok = False
+    iw = np.zeros(4, dtype=np.int32)
+    ch = np.array([76, 78, 84], dtype=np.uint8)
+    for shift in SHIFTS:
+        for i in range(n):
+            for j in range(n):
+                c[i, j] = Hs[i, j]
+            c[i, i] += shift
+        ok = _potrf(c, iw, ch)
+        if ok:
+            break
+    if not ok:
+        state[4] = 1.0
+        return
+    Ha = _chol_solve(c, dd, a)
+    JY = L.copy()
+    Jm = L.copy()
+    JY[:r] -= Y
+    Jm[:r] -= Ym
+    Ip = np.eye(pp)
+    Ir = np.eye(r)
+
+    XL = np.empty((b, r, r))
+    for k in range(b):
+        XL[k] = np.dot(X[k], Lam[k])
+    RX = -XL
+    RX[0] += tau * Ir
+    dx, dnu, dM, dV, dWm, dY, dOm, dT22, dT, dX, dL = _direction(np.zeros((q, q)), RX, D, Ym, Y, Om, JY, Jm, Mi, Xi, Lam, rD, rp, a, Ha, gam, c, dd, s, full, iu0, iu1, Dw, L, r, b)
+    al = _steps(SM, SO, SX, SL, s, dM, dWm, dT22, dY, dOm, dX, dL, r, b)
+    dS11 = dOm + 2.0 * _sym(np.dot(dY, Y.T))
+    zs = (1.0 - al) * q * s + al * al * (np.sum(dM * dS11) - 2.0 * np.sum(dV * dY))
+    fa = 0.0
+    for k in range(1, b):
+        fa += np.sum((X[k] + al * dX[k]) * (Lam[k] + al * dL[k]))
+    sigma = min(1.0, max(zs + fa, 0.0) / (q + (b - 1) * r) / mu) ** 3
+    dZa = np.empty((q, q))
+    dZa[:r, :r] = dM
+    dZa[:r, r:] = dV
+    dZa[r:, :r] = dV.T
+    dZa[r:, r:] = dT
+    dSa = np.zeros((q, q))
+    dSa[:r, :r] = dS11
+    dSa[:r, r:] = -dY
+    dSa[r:, :r] = -dY.T
+    E = np.dot(dZa, dSa)
+    w = np.empty((q, pp))
+    w[:r] = Ym
+    w[r:] = -Ip
+    Zi = np.dot(w, w.T) / s
+    Zi[:r, :r] += Mi
+    ZiE = np.dot(w, np.dot(w.T, E)) / s
+    ZiE[:r] += np.dot(Mi, E[:r])
+    RX = sigma * mu * Ir - XL
+    for k in range(b):
+        RX[k] -= np.dot(dX[k], dL[k])
+    RX[0] += (max(tau, sigma * mu) - sigma * mu) * Ir
+    dx, dnu, dM, dV, dWm, dY, dOm, dT22, dT, dX, dL = _direction(_sym(sigma * mu * Zi - ZiE), RX,
+        D, Ym, Y, Om, JY, Jm, Mi, Xi, Lam, rD, rp, a, Ha, gam, c, dd, s, full, iu0, iu1, Dw, L, r, b)
+    al = min(1.0, STEP_FRACTION * _steps(SM, SO, SX, SL, s, dM, dWm, dT22, dY, dOm, dX, dL, r, b))
+    xs += al * dx
+    for k in range(b):
+        Lam[k] += al * dL[k]
+    Om += al * dOm - al * al * np.dot(dY, dY.T)
+    Y += al * dY
+    th = _theta(xs + x_floor, full, r, b)
+    M = np.ascontiguousarray(th[:, :r])
+    V = np.dot(th, L)
+    Mi, okM = _spd_inv(M)
+    f = np.sum(V * np.dot(Mi, V)) if okM else np.inf
+    state[0] = nu + al * dnu
+    state[1] = min(tau, rho * max(f, f_floor, 1e-300) / r)  # tau never rises (fractional)
+    state[2] = al
+    state[3] = sigma
+
+
+def _estimate(xs, Y, Om, Lam, tau, L, x_floor, full, r, b, f_floor):
+    """fractional._State.gap_estimate."""
+    th = _theta(xs + x_floor, full, r, b)
+    M = np.ascontiguousarray(th[:, :r])
+    V = np.dot(th, L)
+    Mi, okM = _spd_inv(M)
+    Ym = np.dot(Mi, V)
+    f = np.sum(V * Ym)
+    D = Ym - Y
+    X = _blocks(xs, full, r, b)
+    fl = 0.0
+    for k in range(1, b):
+        fl += np.sum(X[k] * Lam[k])
+    return (np.sum(M * Om) + np.sum(np.dot(M, D) * D) + fl + abs(np.sum(X[0] * Lam[0]) - r * tau)) \
+        / max(f, f_floor, 1e-300)
+
+
+_A1, _A2, _A3 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]"
+_I1, _I2 = "int64[::1]", "int64[:, ::1]"
+_SIGNATURES = {
+    "_step": f"void({_A1}, {_A2}, {_A2}, {_A3}, {_A1}, {_A2}, {_A1}, {_A1}, {_I2}, {_I1}, {_I1}, {_A1}, "
+             f"int64, int64, float64, float64)",
+    "_estimate": f"float64({_A1}, {_A2}, {_A2}, {_A3}, float64, {_A2}, {_A1}, {_I2}, int64, int64, float64)",
+}
+_KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"),
+                          unavailable="the compiled learned-mass interior point is unavailable")
+# helpers are plain functions numba compiles inline with their callers (njit on first use)
+_HELPERS = ("_sym", "_theta", "_vech_blocks", "_blocks", "_kernel_block", "_schur", "_lin_parts",
+            "_chol_solve", "_inv_chol", "_spd_inv", "_pencil", "_direction", "_steps")
+
+
+def kernels() -> dict:
+    if not getattr(kernels, "_helpers_done", False):
+        from numba import njit
+
+        from . import _compiled
+
+        g = globals()
+        ipm = _compiled.kernels()  # LAPACK dpotrf / BLAS dtrsv bound and compiled there
+        g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
+        g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
+        for name in _HELPERS:
+            g[name] = njit(cache=True, error_model="numpy")(g[name])
+        kernels._helpers_done = True
+    return _KERNELS.kernels()
+
+
+def warm_up() -> float | None:
+    if not _jit.available():
+        return None
+    kernels()
+    return _KERNELS.compile_seconds
+
+
+def run(problem, xs, gap_tol, max_iter):
+    """fractional._run_numpy with the compiled step and estimate."""
+    from .fractional import CERTIFY_AT, _stalled, _State
+
+    K = kernels()
+    ix = problem.index
+    st = _State.initial(problem, xs)
+    xs = np.ascontiguousarray(st.xs, dtype=float)
+    Y = np.ascontiguousarray(st.Y)
+    Om = np.ascontiguousarray(st.Om)
+    Lam = np.ascontiguousarray(st.Lam)
+    state = np.array([st.nu, st.tau, 0.0, 0.0, 0.0])
+    L = np.ascontiguousarray(problem.L)
+    a = np.ascontiguousarray(problem.a)
+    xf = np.ascontiguousarray(problem.x_floor)
+    full = np.array(ix.full, dtype=np.int64)  # writable copies: the signatures' arrays
+    iu0 = np.array(ix.iu[0], dtype=np.int64)
+    iu1 = np.array(ix.iu[1], dtype=np.int64)
+    Dw = np.ascontiguousarray(ix.Dw[:ix.nv])
+    r, b = problem.r, problem.n_blocks
+    f_floor = problem.tau_of(0.0) * r / problem.rho  # tau's floor (F_FLOOR f_scale)
+    gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
+    best, best_state, trace, stopped = None, None, [], "max_iter"
+    it = 0
+    for it in range(1, max_iter + 1):
+        K["_step"](xs, Y, Om, Lam, state, L, a, xf, full, iu0, iu1, Dw, r, b, problem.rho, f_floor)
+        if state[4] or not np.isfinite(state[2]):
+            stopped = f"numerical failure at iteration {it}: Schur matrix not positive definite"
+            it -= 1
+            break
+        est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, gap_floor)
+        trace.append((float(state[2]), float(state[3]), float(est)))
+        stalled = _stalled(trace, est, gap_tol)
+        if est <= CERTIFY_AT * gap_tol or stalled:
+            c = problem.certify(xs, Y, state[1])
+            if best is None or c["duality_gap"] < best["duality_gap"]:
+                best, best_state = c, (xs.copy(), Y.copy(), float(state[1]))
+            if c["duality_gap"] <= gap_tol:
+                stopped = "certified"
+                break
+            if stalled:
+                stopped = f"stalled at iteration {it}"
+                break
+    if best_state is None:
+        best = problem.certify(xs, Y, state[1])
+        best_state = (xs, Y, float(state[1]))
+    return (*best_state[:2], best_state[2], it, best, stopped, trace)

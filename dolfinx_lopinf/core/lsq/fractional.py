@@ -1,0 +1,572 @@
+"""The learned-mass L-OpInf problem as a conic program, and its certified interior point.
+
+Unknowns: the symmetric blocks Theta = [S_0 = M, S_1 = K, S_2 = C] (b = 2 or 3 blocks of r x r;
+the free columns B are minimised out beforehand, exactly: :func:`~.problem.eliminate_free`).
+With V = Theta L (L: (p, p), p = b r, the compressed data [ddQh; Qh; dQh]) the misfit is the
+matrix-fractional function f = tr(V^T M^-1 V), and the problem
+
+    min  phi = f(Theta) - tau log det(M - F_0)
+    s.t. <W, M> = 1,   S_k - F_k >= 0  (k = 0 .. b-1; F_k the floors)
+
+(W the normalisation weight). Without the log-det term the minimiser is degenerate: the data
+fix M^-1 K, M^-1 C (the dynamics) but hardly the scale of each mode, and the misfit is nearly
+linear in those scales, so its exact minimiser pushes all but one mode onto the floor
+(measured: the exact optimum of the Newmark cantilever has M's eigenvalues 1e-8 .. 1 and
+predicts worse than an inexact solver's stopping point). The log-det term - the analytic
+centre of the near-optimal set - makes it well posed and coordinate invariant (log det
+changes by a constant under M -> T^T M T); tau = rho f / r at the answer (a fixed point,
+followed as f falls and never raised: an early rise of f - the primal trading misfit for
+centrality - would move the floor's target away from its multiplier and jam the steps), so
+that f exceeds its unregularised minimum by at most about rho f (the multiplier of the floor
+is feasible for the unregularised dual: ``misfit_gap`` certifies it).
+
+Conic form. f <= tr T  <=>  Z = [[M, V], [V^T, T]] >= 0 (Schur complement). The interior point
+is the primal-dual HKM method on this LMI (dual U = [[S11, -Y], [-Y^T, I]], Omega = S11 - Y Y^T
+>= 0) and on the floors (slacks X_k = S_k - F_k, multipliers Lambda_k), Mehrotra predictor
+-corrector, with T eliminated: re-centred every iteration to T = V^T M^-1 V + s I,
+s = (<M, Omega> + |Ym - Y|_M^2) / r (Ym = M^-1 V), which makes Z^-1 = diag(M^-1, 0) + w w^T / s
+(w = [Ym; -I]) and the T-block of the Schur complement diagonal, so the Newton system on the
+x = vech(X_k) unknowns is a sum of Kronecker-type kernels (:func:`schur_terms`):
+
+    2 sym_k(dY J_Y^T) - [dOmega, 0] + sym(X^-1 dX Lambda) - dnu W = rhs,  <W, dM> = r_p,
+    dY = 1/2 M^-1 dTheta J_Y + Delta kappa / 2s + Omega dTheta J_m / 2s,
+    dOmega = -sym(M^-1 dM Omega) + sym(Delta J_m^T dTheta^T Omega) / s,
+
+J_Y = L - E Y, J_m = L - E Ym (E: into the M rows), Delta = Ym - Y,
+kappa = skew(Ym^T dTheta J_Y + L^T dTheta^T Y): every 1/s multiplies a quantity that vanishes
+on the central path, so nothing cancels as s -> 0. The steps keep Z, U (through their block
+factorisations, exact pencils) and the floors in their cones.
+
+Certificate (:meth:`FractionalProblem.certify`): for any Y, f >= 2 <Y, V'> - <Y Y^T, M'> and
+-tau log det(M' - F_0) >= -<Omega, M' - F_0> + tau log det Omega + tau r (1 - log tau), so with
+A = sym(2 Y L_0^T - Y Y^T), G_k = sym(2 Y L_k^T) >= 0 (Y repaired by a least-norm change so
+that they are) and Omega = A - nu W > 0,
+
+    phi >= max_nu [nu (1 - <W, F_0>) + <A, F_0> + tau log det(A - nu W)] + tau r (1 - log tau)
+           + sum_k <G_k, F_k>,
+
+a concave scalar maximisation (the generalised eigenvalues of (A, W)). The bound is smooth in
+Y - no minimum eigenvalue edge - so directions the normalisation barely weighs do not ruin it.
+``duality_gap`` = (phi - bound) / max(f, GAP_FLOOR f_scale).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from .linalg import from_eig, sym, vech_index
+from .problem import Certificate
+
+#: rho of tau = rho f / r: the misfit the regulariser may trade for a well-determined mass
+RHO = 1e-2
+#: tau = rho max(f, F_FLOOR f_scale) / r (f_scale: the misfit of M = I with no forces, the
+#: data's scale): on exact data (f at rounding) the regulariser keeps the curvature of the
+#: modal scales instead of vanishing with f (the Newton systems became singular to double
+#: precision) and trades at most rho F_FLOOR f_scale of misfit (a relative residual of 1e-5)
+F_FLOOR = 1e-8
+#: the relative gap is measured against max(f, GAP_FLOOR f_scale): GAP_TOL GAP_FLOOR =
+#: 1e-14 f_scale, 45 u f_scale - the bound's terms are ~sqrt(f f_scale) and the interior point
+#: resolves the complementarity of near-exact fits to ~1e-15 f_scale (measured: the quick
+#: Newmark cantilever at r = 20, f = 1e-10 f_scale, stalls there)
+GAP_FLOOR = 1e-6
+STEP_FRACTION = 0.98
+#: certify when the complementarity gap estimate is below CERTIFY_AT x gap_tol; a stall is
+#: STALL_RUN steps in a row shorter than STALL_STEP once the estimate is below STALL_GAP x
+#: gap_tol (the rounding of the Newton systems near the optimum; earlier short steps recover)
+CERTIFY_AT, STALL_STEP, STALL_RUN, STALL_GAP = 1.0, 0.05, 3, 1e3
+#: ... or no progress: the estimate not halved over STALL_FLAT iterations (below STALL_GAP)
+STALL_FLAT = 6
+SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
+
+
+@functools.lru_cache(maxsize=16)
+def _pairs(r: int):
+    i, j = np.triu_indices(r)
+    c = np.where(i == j, 0.5, 1.0)
+    I, J, A, B = i[:, None], j[:, None], i[None, :], j[None, :]
+    out = (J * r + A, B * r + I, J * r + B, A * r + I, I * r + A, B * r + J, I * r + B, A * r + J,
+           c[:, None] * c[None, :])
+    for arr in out:
+        arr.setflags(write=False)
+    return out
+
+
+def kernel(terms, r: int) -> np.ndarray:
+    """The nv x nv block sum_t coef_t K(P_t, Q_t), K(P, Q)[(ij), (ab)] = c_ij c_ab (P_ja Q_bi +
+    P_jb Q_ai + P_ia Q_bj + P_ib Q_aj) = tr(E_ij P E_ab Q) for the symmetric units E (c = 1/2 on
+    the diagonal), through Phi = sum_t coef_t P_t (x) Q_t (one matrix product)."""
+    Pm = np.stack([co * P.reshape(-1) for co, P, _ in terms], axis=1)
+    Qm = np.stack([Q.reshape(-1) for _, _, Q in terms], axis=0)
+    Phi = Pm @ Qm
+    a1, b1, a2, b2, a3, b3, a4, b4, cc = _pairs(r)
+    return (Phi[a1, b1] + Phi[a2, b2] + Phi[a3, b3] + Phi[a4, b4]) * cc
+
+
+def schur_terms(Mi, Ym, Y, Om, s, L, r, b) -> dict:
+    """The LMI part of the Schur matrix as kernels per block pair (k, l) (module docstring)."""
+    D = Ym - Y
+    JY = L.copy()
+    JY[:r] -= Y
+    Jm = L.copy()
+    Jm[:r] -= Ym
+    GY, GmY, LJY = JY @ JY.T, Jm @ JY.T, L @ JY.T
+    blk = lambda A, k, l: A[k * r:(k + 1) * r, l * r:(l + 1) * r]  # noqa: E731
+    row = lambda A, k: A[k * r:(k + 1) * r]  # noqa: E731
+    h = 0.5 / s
+    DYm, DYt = D @ Ym.T, D @ Y.T
+    out = {}
+    for k in range(b):
+        for l in range(b):
+            t = [(1.0, Mi, blk(GY, l, k)), (1.0 / s, Om, blk(GmY, l, k)), (h, DYm, blk(GY, l, k)),
+                 (h, D @ row(L, l).T, Y @ row(JY, k).T), (-h, D @ row(JY, l).T, Ym @ row(JY, k).T),
+                 (-h, DYt, blk(LJY, l, k))]
+            if k == 0 and l == 0:
+                t.append((1.0, Mi, Om))
+            if k == 0:
+                t.append((-1.0 / s, D @ row(Jm, l).T, Om))
+            out[k, l] = t
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class FractionalProblem:
+    """min f - tau log det(M - F_0), f = tr((Theta L)^T M^-1 Theta L), <W, M> = 1,
+    S_k >= F_k (module docstring). ``rho``: tau = rho f / r at the answer; ``f_scale``: the
+    misfit scale the floors refer to (GAP_FLOOR f_scale, F_FLOOR f_scale)."""
+
+    L: np.ndarray
+    W: np.ndarray
+    floors: np.ndarray
+    rho: float = RHO
+    f_scale: float = 0.0
+
+    def __post_init__(self):
+        b, r = self.floors.shape[:2]
+        if self.L.shape != (b * r, b * r) or self.W.shape != (r, r):
+            raise ValueError(f"L {self.L.shape}, W {self.W.shape} do not fit {b} blocks of {r}")
+
+    @property
+    def r(self) -> int:
+        return self.W.shape[0]
+
+    @property
+    def n_blocks(self) -> int:
+        return self.floors.shape[0]
+
+    @property
+    def index(self):
+        return vech_index(self.r, self.n_blocks)
+
+    @functools.cached_property
+    def a(self) -> np.ndarray:
+        """<W, M> = a^T x."""
+        ix = self.index
+        out = np.zeros(ix.n)
+        out[:ix.nv] = ix.Dw[:ix.nv] * self.W[ix.iu]
+        return out
+
+    @functools.cached_property
+    def x_floor(self) -> np.ndarray:
+        return self.index.vech(self.floors)
+
+    def theta(self, xs) -> np.ndarray:
+        """Theta from the slacks x (S_k = F_k + X_k)."""
+        return self.index.theta(xs + self.x_floor)
+
+    def misfit(self, xs) -> float:
+        th = self.theta(xs)
+        V = th @ self.L
+        c = scipy.linalg.cho_factor(th[:, :self.r], lower=True)
+        return float(np.sum(V * scipy.linalg.cho_solve(c, V)))
+
+    def gap_reference(self, f) -> float:
+        return max(f, GAP_FLOOR * self.f_scale, 1e-300)
+
+    def tau_of(self, f) -> float:
+        """tau = rho max(f, F_FLOOR f_scale) / r (F_FLOOR: exact data)."""
+        return self.rho * max(f, F_FLOOR * self.f_scale, 1e-300) / self.r
+
+    def certify(self, xs, Y, tau) -> dict:
+        """The certificate of the slacks x with the dual Y (module docstring): ``duality_gap``
+        of the regularised problem, ``misfit_gap`` of f against the unregularised minimum
+        (the floor multiplier tau X_0^-1 fixed), ``bound``, ``phi``, ``f``."""
+        r, b, L = self.r, self.n_blocks, self.L
+        th = self.theta(xs)
+        M, V = th[:, :r], th @ L
+        f = float(np.sum(V * np.linalg.solve(M, V)))
+        X0 = M - self.floors[0]
+        phi = f - tau * np.linalg.slogdet(X0)[1]
+        G = _dot_extended(Y, L.T)
+        if b > 1:  # least-norm change of Y making sym(Y L_k^T) >= 0 for k >= 1
+            targets = []
+            for k in range(1, b):
+                Gs = sym(G[:, k * r:(k + 1) * r])
+                w, Q = np.linalg.eigh(Gs)
+                targets.append(from_eig(np.maximum(w, 0.0), Q) - Gs)
+            LS = L[r:]
+            Y = Y + scipy.linalg.lstsq(LS @ LS.T, np.hstack(targets).T, check_finite=False)[0].T @ LS
+            G = _dot_extended(Y, L.T)
+        rest = sum(2.0 * float(np.sum(sym(G[:, k * r:(k + 1) * r]) * self.floors[k])) for k in range(1, b))
+        A = sym(_dot_extended(np.hstack([Y, Y]), np.vstack([2.0 * L[:r].T, -Y.T])))
+        lam = scipy.linalg.eigvalsh(A, self.W)
+        wf = float(np.sum(self.W * self.floors[0]))
+        nu, logdet = _maximise_nu(A, self.W, tau, 1.0 - wf, _best_nu(lam, tau, 1.0 - wf))
+        bound = (nu * (1.0 - wf) + float(np.sum(A * self.floors[0])) + rest + tau * logdet
+                 + tau * r * (1.0 - np.log(tau)))
+        lam0 = scipy.linalg.eigvalsh(A - tau * np.linalg.inv(X0), self.W, subset_by_index=[0, 0])[0]
+        misfit_bound = float(np.sum(A * self.floors[0])) + (1.0 - wf) * lam0 + rest
+        ref = self.gap_reference(f)
+        return {"duality_gap": float((phi - bound) / ref), "misfit_gap": float((f - misfit_bound) / ref),
+                "bound": float(bound), "phi": float(phi), "f": f, "tau": float(tau)}
+
+
+def _dot_extended(A, B) -> np.ndarray:
+    """A @ B accumulated in extended precision (numpy's longdouble: 64-bit mantissa on x86),
+    rounded once. The certificate's A = sym(2 Y L_0^T - Y Y^T) is ~f while its terms are
+    ~sqrt(f f_scale): in double the bound erred by ~u cond(W) sqrt(f f_scale) (measured:
+    1e-16 f_scale on the Newmark cantilever at r = 20, f = 1e-10 f_scale - the size of the
+    certified gap itself)."""
+    return (A.astype(np.longdouble) @ B.astype(np.longdouble)).astype(float)
+
+
+def _logdet(B):
+    """(log det B, tr(B^-1 W), tr((B^-1 W)^2)) for SPD B by the Jacobi-scaled Cholesky - exact
+    to rounding on the graded matrices of the certificate, where the generalised eigenvalues
+    of (A, W) are not (measured: log det off by 4e-4 at eigenvalues spanning 1e15) - or None."""
+    dg = np.diag(B)
+    if not np.all(dg > 0):
+        return None
+    d = 1.0 / np.sqrt(dg)
+    try:
+        c = scipy.linalg.cho_factor(B * d[:, None] * d[None, :], lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    return 2.0 * float(np.sum(np.log(np.diag(c[0])))) - 2.0 * float(np.sum(np.log(d))), c, d
+
+
+def _maximise_nu(A, W, tau, cc, nu0):
+    """(nu, log det(A - nu W)): Newton on the concave nu cc + tau log det(A - nu W) from nu0
+    (any nu with A - nu W > 0 gives a valid bound; this one is the best to rounding)."""
+    def value(nu):
+        out = _logdet(A - nu * W)
+        return None if out is None else (nu * cc + tau * out[0], out)
+
+    nu = nu0
+    cur = value(nu)
+    while cur is None:  # nu0 from the eigenvalues may sit just outside: move down
+        nu -= max(abs(nu), tau) * 1e-6
+        cur = value(nu)
+    for _ in range(20):
+        _, (ld, c, d) = cur
+        X = scipy.linalg.cho_solve(c, W * d[:, None] * d[None, :], check_finite=False)  # (B^-1 W) scaled
+        g1, g2 = cc - tau * float(np.trace(X)), -tau * float(np.sum(X * X.T))
+        step = -g1 / g2
+        for _ in range(60):
+            nxt = value(nu + step)
+            if nxt is not None and nxt[0] >= cur[0]:
+                break
+            step *= 0.5
+        else:
+            break
+        nu, cur = nu + step, nxt
+        if abs(step) <= 1e-15 * max(abs(nu), tau):
+            break
+    return nu, cur[1][0]
+
+
+def _best_nu(lam, tau, c) -> float:
+    """argmax over nu < lam_min of c nu + tau sum log(lam_i - nu): c = tau sum 1/(lam_i - nu),
+    by bisection on d = lam_min - nu in [tau / c, tau r / c] (the sum is monotone in nu)."""
+    r = len(lam)
+    lo, hi = tau / c, tau * r / c  # d: the root lies between (one term alone / all r equal)
+    for _ in range(200):
+        mid = np.sqrt(lo * hi) if lo > 0 else 0.5 * (lo + hi)
+        if tau * np.sum(1.0 / (lam - lam[0] + mid)) > c:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-15 * hi:
+            break
+    return float(lam[0] - hi)
+
+
+def _pencil_step(D, E) -> float:
+    """Largest a <= 1 with D + a E >= 0 (D > 0): 1 / max(0, -lambda_min(R^-1 E R^-T))."""
+    R = np.linalg.cholesky(D)
+    Ri = scipy.linalg.solve_triangular(R, np.eye(len(D)), lower=True, check_finite=False)
+    ev = np.linalg.eigvalsh(Ri @ E @ Ri.T)[0]
+    return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
+
+
+def start(problem: FractionalProblem):
+    """M_0 = I / tr W, the other blocks the unconstrained minimiser of f for M_0, eigenvalues
+    made positive (|w| floored at 1e-3 of the largest): the slacks x_0."""
+    ix, r, b, L = problem.index, problem.r, problem.n_blocks, problem.L
+    m = 1.0 / np.trace(problem.W)
+    blocks = [m * np.eye(r)]
+    if b > 1:  # f(M0, N) = (1/m) |m L_0 + N L_N|^2: the symmetric least squares of N
+        from .linalg import symmetric_normal_equations
+        A = np.hstack([L[r:].T, m * L[:r].T])
+        R = scipy.linalg.qr(A, mode="r", check_finite=False)[0]
+        pN = (b - 1) * r
+        H, h = symmetric_normal_equations(R[:pN, :pN].T, R[:pN, pN:].T, b - 1)
+        try:  # H > 0 on data that determine N (one Cholesky), else the least-norm solution
+            xN = -scipy.linalg.cho_solve(scipy.linalg.cho_factor(H, check_finite=False), h,
+                                         check_finite=False)
+        except np.linalg.LinAlgError:
+            xN = -np.linalg.lstsq(H, h, rcond=None)[0]
+        blocks += list(vech_index(r, b - 1).blocks(xN))
+    X = np.stack(blocks) - problem.floors
+    w, Q = np.linalg.eigh(X)
+    w = np.maximum(np.abs(w), 1e-3 * np.abs(w).max(axis=1, keepdims=True))
+    return ix.vech(from_eig(w, Q))
+
+
+class MassInteriorPoint:
+    """The interior point of the module docstring (numpy; the compiled iteration:
+    :mod:`._fractional_compiled`). ``solve(problem)`` returns (slacks x, dual Y, tau,
+    Certificate); the certificate's details hold the best ``certify`` dict."""
+
+    def __init__(self, gap_tol: float = 1e-8, max_iter: int = 80, backend: str = "auto"):
+        self.gap_tol, self.max_iter, self.backend = gap_tol, max_iter, backend
+
+    def solve(self, problem: FractionalProblem, x0=None):
+        from .. import compiled as _jit
+
+        t0 = time.perf_counter()
+        backend = _jit.resolve_backend(self.backend)
+        xs = start(problem) if x0 is None else np.array(x0, dtype=float)
+        run = _run_numpy
+        if backend == "numba":
+            try:
+                from . import _fractional_compiled
+                run = _fractional_compiled.run
+            except ImportError:  # not built yet
+                backend = "numpy"
+        xs, Y, tau, it, best, stopped, trace = run(problem, xs, self.gap_tol, self.max_iter)
+        ok = best is not None and best["duality_gap"] <= self.gap_tol
+        cert = Certificate("mass-ipm", ok, it, seconds=time.perf_counter() - t0, method="lmi-hkm",
+                           duality_gap=best["duality_gap"] if best else np.inf,
+                           details={"backend": backend, "trace": trace, "stopped": stopped,
+                                    **({k: v for k, v in best.items() if k != "duality_gap"} if best else {})})
+        return xs, Y, tau, cert
+
+
+def _stalled(trace, est, gap_tol) -> bool:
+    """STALL_RUN short steps, or STALL_FLAT iterations without halving the estimate, once it
+    is below STALL_GAP gap_tol."""
+    if est > STALL_GAP * gap_tol:
+        return False
+    short = len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
+    flat = len(trace) > STALL_FLAT and est > 0.5 * trace[-STALL_FLAT - 1][2]
+    return short or flat
+
+
+def _run_numpy(problem, xs, gap_tol, max_iter):
+    """The iteration (module docstring): (x, Y, tau, iterations, best certificate, why it
+    stopped, trace of (step, sigma, gap estimate))."""
+    state = _State.initial(problem, xs)
+    best, best_state, trace, stopped = None, None, [], "max_iter"
+    it = 0
+    for it in range(1, max_iter + 1):
+        try:
+            a, sigma = state.step()
+        except np.linalg.LinAlgError as exc:
+            stopped = f"numerical failure at iteration {it}: {exc}"
+            it -= 1
+            break
+        est = state.gap_estimate()
+        trace.append((a, sigma, est))
+        stalled = _stalled(trace, est, gap_tol)
+        if est <= CERTIFY_AT * gap_tol or stalled:
+            c = problem.certify(state.xs, state.Y, state.tau)
+            if best is None or c["duality_gap"] < best["duality_gap"]:
+                best, best_state = c, (state.xs.copy(), state.Y.copy(), state.tau)
+            if c["duality_gap"] <= gap_tol:
+                stopped = "certified"
+                break
+            if stalled:
+                stopped = f"stalled at iteration {it}"
+                break
+    if best_state is None:
+        best = problem.certify(state.xs, state.Y, state.tau)
+        best_state = (state.xs, state.Y, state.tau)
+    return (*best_state[:2], best_state[2], it, best, stopped, trace)
+
+
+@dataclass
+class _State:
+    """The iterate: slacks xs, dual Y, Omega = S11 - Y Y^T, Lambda_k, nu."""
+
+    p: FractionalProblem
+    xs: np.ndarray
+    Y: np.ndarray
+    Om: np.ndarray
+    Lam: np.ndarray
+    nu: float
+    tau: float
+
+    @classmethod
+    def initial(cls, p: FractionalProblem, xs):
+        r, b = p.r, p.n_blocks
+        th = p.theta(xs)
+        M, V = th[:, :r], th @ p.L
+        Mi = np.linalg.inv(M)
+        Ym = Mi @ V
+        f = float(np.sum(V * Ym))
+        s0 = f / (r + 2 * b * r)  # perfectly central: Z U = s0 I, X_k Lambda_k = s0 I
+        X = p.index.blocks(xs)
+        st = cls(p, xs, Ym.copy(), s0 * Mi, s0 * np.linalg.inv(X), 0.0, p.tau_of(f))
+        rd = st.dual_residual()
+        st.nu = float(p.a @ rd / (p.a @ p.a))
+        return st
+
+    def dual_residual(self):
+        """2 sym_k(Y L^T) - [Omega + Y Y^T + nu W, 0] - Lambda in the vech unknowns."""
+        p, r, b = self.p, self.p.r, self.p.n_blocks
+        G = 2.0 * self.Y @ p.L.T
+        G[:, :r] -= self.Om + self.Y @ self.Y.T
+        return p.index.Dw * p.index.vech(sym(G.reshape(r, b, r).transpose(1, 0, 2)) - self.Lam) - self.nu * p.a
+
+    def gap_estimate(self) -> float:
+        p, r = self.p, self.p.r
+        th = p.theta(self.xs)
+        M, V = th[:, :r], th @ p.L
+        Ym = np.linalg.solve(M, V)
+        f = float(np.sum(V * Ym))
+        D = Ym - self.Y
+        X = p.index.blocks(self.xs)
+        floors = sum(float(np.sum(X[k] * self.Lam[k])) for k in range(1, p.n_blocks))
+        return (float(np.sum(M * self.Om) + np.sum((M @ D) * D)) + floors
+                + abs(float(np.sum(X[0] * self.Lam[0])) - r * self.tau)) / p.gap_reference(f)
+
+    def step(self):
+        """One predictor-corrector iteration; returns (step, sigma)."""
+        p, r, b, L = self.p, self.p.r, self.p.n_blocks, self.p.L
+        ix = p.index
+        n, nv, pp = ix.n, ix.nv, b * r
+        q = r + pp
+        Ir, Ip = np.eye(r), np.eye(pp)
+        th = p.theta(self.xs)
+        M, V = th[:, :r], th @ L
+        Mi = np.linalg.inv(M)
+        Ym = Mi @ V
+        Y, Om, Lam = self.Y, self.Om, self.Lam
+        D = Ym - Y
+        s = float(np.sum(M * Om) + np.sum((M @ D) * D)) / r
+        X = ix.blocks(self.xs)
+        rD = self.dual_residual()
+        rp = (1.0 - p.a @ p.x_floor) - p.a @ self.xs
+        mu = (q * s + sum(float(np.sum(X[k] * Lam[k])) for k in range(1, b))) / (q + (b - 1) * r)
+        Xi = np.linalg.inv(X)
+        H = np.empty((n, n))
+        for (k, l), t in schur_terms(Mi, Ym, Y, Om, s, L, r, b).items():
+            H[k * nv:(k + 1) * nv, l * nv:(l + 1) * nv] = kernel(t + ([(1.0, Xi[k], Lam[k])] if k == l else []), r)
+        H = sym(H)
+        d0 = 1.0 / np.sqrt(np.diag(H))
+        gam = 1.0 / float((p.a * d0) @ (p.a * d0))  # + gam a a^T: the normalisation lifts the
+        H += gam * np.outer(p.a, p.a)                # scale direction (the system is singular there)
+        dd = 1.0 / np.sqrt(np.diag(H))
+        Hs = H * dd[:, None] * dd[None, :]
+        for shift in SHIFTS:  # rounding as mu -> 0: a small relative shift (lsq.ipm's rule)
+            try:
+                fac = scipy.linalg.cho_factor(Hs + shift * np.eye(n), lower=True, check_finite=False)
+                break
+            except np.linalg.LinAlgError:
+                if shift == SHIFTS[-1]:
+                    raise
+
+        def solve(v):
+            return dd * scipy.linalg.cho_solve(fac, dd * v, check_finite=False)
+
+        Ha = solve(p.a)
+        JY = L.copy()
+        JY[:r] -= Y
+        Jm = L.copy()
+        Jm[:r] -= Ym
+        vb = lambda G: ix.Dw * ix.vech(sym(G.reshape(r, b, r).transpose(1, 0, 2)))  # noqa: E731
+
+        def lin_parts(dx):
+            dth = ix.theta(dx)
+            dM, dV, dW, dWm = dth[:, :r], dth @ L, dth @ JY, dth @ Jm
+            kap = Ym.T @ dW + dV.T @ Y
+            kap = 0.5 * (kap - kap.T)
+            dY = 0.5 * Mi @ dW + (D @ kap + Om @ dWm) / (2.0 * s)
+            dOm = -sym(Mi @ dM @ Om) + sym(D @ dWm.T @ Om) / s
+            return dM, dV, dW, dWm, dY, dOm
+
+        def lin_op(dx):
+            *_, dY, dOm = lin_parts(dx)
+            G = 2.0 * dY @ JY.T
+            G[:, :r] -= dOm
+            return vb(G) + ix.Dw * ix.vech(sym(Xi @ ix.blocks(dx) @ Lam)) + gam * p.a * (p.a @ dx)
+
+        def direction(Xc, RX):
+            X11, X12, X22 = Xc[:r, :r], Xc[:r, r:], Xc[r:, r:]
+            dYc = 0.5 * D - X12 - 0.5 * (Ym + Y) @ X22
+            C11 = -Om + X11 + 2.0 * sym(X12 @ Y.T) + Y @ X22 @ Y.T
+            G = 2.0 * dYc @ JY.T
+            G[:, :r] -= C11
+            rhs = -rD - vb(G) + ix.Dw * ix.vech(sym(Xi @ RX)) + gam * rp * p.a
+            dx = solve(rhs)
+            dnu = (rp - p.a @ dx) / (p.a @ Ha)
+            dx = dx + dnu * Ha
+            res = rhs - (lin_op(dx) - dnu * p.a)  # one refinement against the operator itself
+            e = solve(res)
+            de = -(p.a @ e) / (p.a @ Ha)
+            dx, dnu = dx + e + de * Ha, dnu + de
+            dM, dV, dW, dWm, dY, dOm = lin_parts(dx)
+            dX = ix.blocks(dx)
+            rho_ = X22 - Ip
+            return {"dx": dx, "dnu": dnu, "dM": dM, "dV": dV, "dWm": dWm, "dY": dYc + dY, "dOm": C11 + dOm,
+                    "dT22": s * rho_ - sym(dWm.T @ D), "dT": s * rho_ + sym(Ym.T @ dW + dV.T @ Y),
+                    "dX": dX, "dL": sym(Xi @ (RX - dX @ Lam))}
+
+        def steps(d):
+            Dz = np.zeros((q, q))
+            Dz[:r, :r], Dz[r:, r:] = M, s * Ip
+            Ds = np.zeros((q, q))
+            Ds[:r, :r], Ds[r:, r:] = Om, Ip
+            Ez = np.block([[d["dM"], d["dWm"]], [d["dWm"].T, d["dT22"]]])
+            Es = np.block([[d["dOm"], -d["dY"]], [-d["dY"].T, np.zeros((pp, pp))]])
+            out = min(_pencil_step(Dz, Ez), _pencil_step(Ds, Es))
+            for k in range(b):
+                out = min(out, _pencil_step(X[k], d["dX"][k]), _pencil_step(Lam[k], d["dL"][k]))
+            return out
+
+        XL = X @ Lam
+        RX = -XL
+        RX[0] += self.tau * Ir
+        da = direction(np.zeros((q, q)), RX)
+        a = steps(da)
+        dS11 = da["dOm"] + 2.0 * sym(da["dY"] @ Y.T)
+        zs = (1.0 - a) * q * s + a * a * (float(np.sum(da["dM"] * dS11)) - 2.0 * float(np.sum(da["dV"] * da["dY"])))
+        fl = sum(float(np.sum((X[k] + a * da["dX"][k]) * (Lam[k] + a * da["dL"][k]))) for k in range(1, b))
+        sigma = min(1.0, max(zs + fl, 0.0) / (q + (b - 1) * r) / mu) ** 3
+        E = np.block([[da["dM"], da["dV"]], [da["dV"].T, da["dT"]]]) @ np.block([[dS11, -da["dY"]], [-da["dY"].T, np.zeros((pp, pp))]])
+        w = np.vstack([Ym, -Ip])
+        Zi = w @ w.T / s
+        Zi[:r, :r] += Mi
+        ZiE = w @ (w.T @ E) / s
+        ZiE[:r] += Mi @ E[:r]
+        RX = sigma * mu * Ir - XL - da["dX"] @ da["dL"]
+        RX[0] += (max(self.tau, sigma * mu) - sigma * mu) * Ir
+        dc = direction(sym(sigma * mu * Zi - ZiE), RX)
+        a = min(1.0, STEP_FRACTION * steps(dc))
+        self.xs = self.xs + a * dc["dx"]
+        self.nu += a * dc["dnu"]
+        self.Lam = Lam + a * dc["dL"]
+        self.Om = Om + a * dc["dOm"] - a * a * dc["dY"] @ dc["dY"].T
+        self.Y = Y + a * dc["dY"]
+        self.tau = min(self.tau, p.tau_of(p.misfit(self.xs)))
+        return a, sigma
+
+
+def with_rho(problem: FractionalProblem, rho: float) -> FractionalProblem:
+    return dataclasses.replace(problem, rho=rho)
