@@ -63,7 +63,7 @@ from math import comb
 import numpy as np
 import scipy.linalg
 
-from ..errors import InputError, SolverWarning
+from ..errors import InputError, NonLagrangianWarning, SolverWarning, StepFailedError
 from ._checks import as_real_array, check_matrix, check_positive
 from .compiled import NEWTON_STALL
 
@@ -305,7 +305,14 @@ def point_data(Q: np.ndarray, V: np.ndarray, A: np.ndarray, inputs: np.ndarray |
 def _concat(datas) -> MidpointData:
     if isinstance(datas, MidpointData):
         return datas
+    if isinstance(datas, np.ndarray) or not isinstance(datas, (list, tuple)):
+        raise InputError(f"data must be a MidpointData (from midpoint_data(...) or "
+                         f"point_data(...)) or a list of them, got {type(datas).__name__}")
     datas = list(datas)
+    for i, d in enumerate(datas):
+        if not isinstance(d, MidpointData):
+            raise InputError(f"data[{i}] is a {type(d).__name__}, not a MidpointData (from "
+                             "midpoint_data(...) or point_data(...))")
     if not datas:
         raise InputError("no data: pass a MidpointData or a non-empty list of them")
     has_u = {d.Ubar is not None for d in datas}
@@ -473,6 +480,13 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
     """
     if constraint not in CONSTRAINTS:
         raise InputError(f"constraint must be one of {CONSTRAINTS}, got {constraint!r}")
+    for name, value in (("eps", eps), ("eps_gram", eps_gram), ("ridge", ridge)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not (np.isfinite(value) and value >= 0):
+            raise InputError(f"{name} must be a finite number >= 0, got {value!r} (a negative "
+                             "floor would admit an indefinite, anti-physical K)")
+    if not isinstance(damping, (bool, np.bool_)):
+        raise InputError(f"damping must be True or False, got {damping!r}")
     if solver not in ("ipm", "cvxpy"):
         raise InputError(f"solver must be 'cvxpy' or 'ipm', got {solver!r}")
     data = _concat(data)
@@ -773,18 +787,6 @@ def fit_force(data, *, damping: bool = True, ridge: float = 1e-10):
 
 # -- the reduced integrator -----------------------------------------------------------------
 
-@dataclass
-class RomTrajectory:
-    Qh: np.ndarray  # (r, n_steps + 1)
-    P: np.ndarray  # (r, n_steps + 1) discrete momenta (= velocities, reduced mass I)
-    energy: np.ndarray | None  # 1/2 |p|^2 + U(q) when the model has a potential
-    seconds: float
-    newton_iterations: int
-    stable: bool
-    backend: str = "numpy"  # the loop that ran: "numpy" (reference) or "numba"
-    jacobians: int | None = None  # Newton matrices factorised (= newton_iterations when fresh)
-
-
 _GAUSS = (0.5 - 0.5 / np.sqrt(3.0), 0.5 + 0.5 / np.sqrt(3.0))
 
 _LAZY_THETA = 0.1  # simplified Newton: refresh the Jacobian when |delta_k| > this |delta_(k-1)|
@@ -823,13 +825,24 @@ class PolynomialROM:
                              f"force_and_jacobian(q); got {type(model).__name__}")
         self.model = model
         self.r = model.r
-        self.C = None if C is None else np.asarray(C, float)
-        self.B = None if B is None else np.asarray(B, float)
+        self.C = None if C is None else as_real_array(C, "C")
+        self.B = None if B is None else as_real_array(B, "B")
         for name, A, shape in (("C", self.C, (self.r, self.r)),):
             if A is not None and A.shape != shape:
                 raise InputError(f"{name} must be {shape}, got {A.shape}")
         if self.B is not None and (self.B.ndim != 2 or self.B.shape[0] != self.r):
             raise InputError(f"B must be (r = {self.r}, m), got {self.B.shape}")
+        for name, A in (("C", self.C), ("B", self.B)):
+            if A is not None and not np.all(np.isfinite(A)):
+                raise InputError(f"{name} contains NaN or inf; an operator must be finite (did "
+                                 "its fit fail?)")
+        if self.C is not None:
+            from .rom import _structure_problems
+
+            problems = _structure_problems("C", self.C)
+            if problems:
+                warnings.warn("; ".join(problems) + ": this damping is not dissipative - the "
+                              "model's energy can grow", NonLagrangianWarning, stacklevel=2)
         self._tensors = None
 
     def energy(self, Q, P):
@@ -837,64 +850,72 @@ class PolynomialROM:
             return None
         return 0.5 * np.sum(P * P, axis=0) + self.model.value(Q)
 
-    def simulate(self, q0, v0, dt: float, n_steps: int, inputs_mid=None, *, scheme="midpoint",
+    def simulate(self, q0, v0, dt: float, n_steps: int, *, inputs=None, every: int = 1,
+                 backend: str = "auto", on_failure: str = "raise", scheme="midpoint",
                  tol: float = 1e-13, max_iter: int = 50, blowup: float = 1e8,
-                 backend: str = "auto", atol: float = 0.0,
-                 jacobian: str = "fresh") -> RomTrajectory:
-        """Integrate n_steps from (q0, v0); ``inputs_mid`` (m, n_steps): u(t_{k+1/2}).
+                 atol: float = 0.0, jacobian: str = "fresh", inputs_mid=None):
+        """Integrate n_steps from (q0, v0) - the contract of every ROM's ``simulate``
+        (:class:`~dolfinx_lopinf.core.rom.Trajectory`).
 
         Each step solves, for d = q1 - q0 (reduced Newton until the residual is below ``tol``
         times the size of its terms),
             d/dt + C d/2 + dt/2 g(q0, q1) = p0 + dt/2 B u_{k+1/2},
             p1 = d/dt - C d/2 - dt/2 g(q0, q1) + dt/2 B u_{k+1/2},
         with g = f((q0+q1)/2) (midpoint) or the two-point Gauss average of f on [q0, q1] (AVF).
-        A state beyond ``blowup`` x the initial scale, or Newton failure, stops the run
-        (``stable=False``, the rest NaN). A Newton correction below NEWTON_STALL (16 eps) times
-        the state also ends the iteration (full Newton, both loops): the residual test alone,
-        at tol = 1e-13, let the force's rounding decide whether a step converged - the compiled
-        and numpy loops disagreed on a probe-fitted SVK model (r = 6). ``atol`` (default 0) is
-        added to the stopping test,
-        |R| <= tol size + atol: the rounding floor of a force that is not evaluated to
-        machine precision relative to its own size (a DOLFINx-assembled force near rest sums
-        cell terms that cancel, so near rest, where every term of R is small, a purely relative
-        test can ask for digits below its rounding).
+        A Newton correction below NEWTON_STALL (16 eps) times the state also ends the
+        iteration (full Newton, both loops): the residual test alone, at tol = 1e-13, let the
+        force's rounding decide whether a step converged. ``atol`` (default 0) is added to the
+        stopping test, |R| <= tol size + atol: the rounding floor of a force that is not
+        evaluated to machine precision relative to its own size (a DOLFINx-assembled force
+        near rest sums cell terms that cancel).
 
-        ``jacobian``: ``"fresh"`` (Newton: the Jacobian at every iterate) or ``"lazy"``
-        (simplified Newton, numpy loop only: the last factorised Newton matrix is kept, across
-        steps too, and formed afresh at the next iterate only when convergence slows,
-        |delta_k| > 0.1 |delta_(k-1)|; iterates in between evaluate the force alone -
-        ``model.force`` or ``model.gradient`` when it has one). Same stopping test, so the
-        states agree to the Newton tolerance; it pays when the Jacobian costs far more than
-        the force (the FOM-assembled Galerkin force: r + 1 assemblies against 1).
+        Args:
+            inputs: for a forced model, u(t) -> (m,) (evaluated at the step midpoints), an
+                (m, n_steps) array at the midpoints or an (m, n_steps + 1) array at
+                t_0 .. t_n (averaged to the midpoints); None: the free response.
+                (``inputs_mid``: the former name of the midpoint array.)
+            every: keep every ``every``-th step.
+            on_failure: a step whose Newton iteration fails, or a state beyond ``blowup``
+                times the initial scale: ``"raise"`` (default) a
+                :class:`~dolfinx_lopinf.errors.StepFailedError` naming the step; ``"stop"``:
+                the trajectory up to it, NaN after (``trajectory.stable`` False).
+            jacobian: ``"fresh"`` (Newton) or ``"lazy"`` (simplified Newton, numpy loop only:
+                the last factorised Newton matrix is kept, across steps too, and formed afresh
+                when convergence slows, |delta_k| > 0.1 |delta_(k-1)|; it pays when the
+                Jacobian costs far more than the force, e.g. the FOM-assembled Galerkin force).
+            backend: ``"numpy"`` (the reference loop, any model), ``"numba"`` (the compiled
+                loop for a :class:`PolynomialPotential` or :class:`PolynomialForce`, equal to
+                rounding) or ``"auto"``. Compilation happens before the timer.
 
-        ``backend``: ``"numpy"`` (the reference loop, any model), ``"numba"`` (the compiled loop
-        of :mod:`dolfinx_lopinf.core.compiled` for a :class:`PolynomialPotential` or
-        :class:`PolynomialForce`: same residual, Newton update and stopping test, trajectories
-        equal to rounding) or ``"auto"`` (numba when it imports, ``DOLFINX_LOPINF_JIT`` is not
-        0 and the model is polynomial; else numpy). Compilation happens before the timer.
+        Returns:
+            :class:`~dolfinx_lopinf.core.rom.Trajectory` (Vh: the momenta p = qh_t, the
+            reduced mass being I); ``info``: ``newton_iterations``, ``jacobians``,
+            ``energy`` (1/2 |p|^2 + U(q) per stored column, when the model has a potential).
         """
+        from .rom import Trajectory, _check_on_failure, _initial_state
+
+        _check_on_failure(on_failure)
         if scheme not in SCHEMES:
             raise InputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
         dt = check_positive(dt, "dt")
         if isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 0:
             raise InputError(f"n_steps must be a non-negative integer, got {n_steps!r}")
+        if isinstance(every, bool) or int(every) != every or every < 1:
+            raise InputError(f"every must be a positive integer, got {every!r}")
         try:
             atol = float(atol)
         except (TypeError, ValueError):
             atol = float("nan")
         if not (np.isfinite(atol) and atol >= 0):
             raise InputError(f"atol must be a finite number >= 0, got {atol!r}")
+        if inputs_mid is not None:
+            if inputs is not None:
+                raise InputError("give inputs or inputs_mid (its former name), not both")
+            inputs = inputs_mid
         r = self.r
-        q = np.array(q0, dtype=float).reshape(r)
-        p = np.array(v0, dtype=float).reshape(r)
+        q, p = (np.array(a) for a in _initial_state(q0, v0, r))
         n_steps = int(n_steps)
-        U = None
-        if inputs_mid is not None and self.B is not None:
-            U = np.atleast_2d(np.asarray(inputs_mid, float))
-            if U.shape != (self.B.shape[1], n_steps):
-                raise InputError(f"inputs_mid must be (m = {self.B.shape[1]}, n_steps = {n_steps}), "
-                                 f"got {U.shape}")
-            BU = self.B @ U
+        BU = self._midpoint_forcing(inputs, dt, n_steps)
         if jacobian not in ("fresh", "lazy"):
             raise InputError(f"jacobian must be 'fresh' or 'lazy', got {jacobian!r}")
         lazy = jacobian == "lazy"
@@ -907,10 +928,47 @@ class PolynomialROM:
         limit = blowup * max(np.abs(q).max(), np.abs(p).max() * dt, 1e-300) + blowup
         run = self._run_numba if backend == "numba" else self._run_numpy
         t0 = time.perf_counter()
-        iters, n_jac, stable = run(q, p, dt, n_steps, BU if U is not None else None, A0, Cm, scheme,
+        iters, n_jac, stable = run(q, p, dt, n_steps, BU, A0, Cm, scheme,
                                    float(tol), atol, int(max_iter), float(limit), Qs, Ps, lazy)
         seconds = time.perf_counter() - t0
-        return RomTrajectory(Qs, Ps, self.energy(Qs, Ps), seconds, iters, stable, backend, n_jac)
+        info = {"newton_iterations": iters, "jacobians": n_jac}
+        if not stable:
+            k = int(np.argmax(~np.all(np.isfinite(Qs), axis=0)))
+            message = (f"the reduced step {k} (t = {k * dt:.6g}) failed: Newton did not "
+                       f"converge in {max_iter} iterations or the state grew beyond {blowup:g} "
+                       "times its initial scale; try a smaller dt")
+            if on_failure == "raise":
+                raise StepFailedError(message, step=k)
+            info["failure"] = message
+        Qs, Ps = Qs[:, ::every], Ps[:, ::every]
+        info["energy"] = self.energy(Qs, Ps)
+        return Trajectory(dt * every * np.arange(Qs.shape[1]), Qs, Ps, None, seconds, backend,
+                          info)
+
+    def _midpoint_forcing(self, inputs, dt, n_steps):
+        """B u at the step midpoints (r, n_steps), or None (unforced / the free response)."""
+        if self.B is None:
+            if inputs is not None:
+                raise InputError("this ROM has no input operator B (it is unforced); do not "
+                                 "pass inputs")
+            return None
+        if inputs is None:
+            return None
+        m = self.B.shape[1]
+        if callable(inputs):
+            U = np.column_stack([np.atleast_1d(np.asarray(inputs(dt * (k + 0.5)), dtype=float))
+                                 for k in range(n_steps)]) if n_steps else np.zeros((m, 0))
+        else:
+            U = as_real_array(inputs, "inputs")
+            U = U.reshape(1, -1) if U.ndim == 1 else U
+            if U.shape == (m, n_steps + 1):
+                U = 0.5 * (U[:, 1:] + U[:, :-1])
+        if U.shape != (m, n_steps):
+            raise InputError(f"inputs must be (m = {m}, n_steps = {n_steps}) at the step midpoints "
+                             f"or (m, n_steps + 1) at t_0 .. t_n, or a callable, got {U.shape}")
+        if not np.all(np.isfinite(U)):
+            raise InputError("inputs contain NaN or inf; the forcing must be finite")
+        return self.B @ U
 
     def _backend(self, requested, lazy) -> str:
         """The loop that runs: numba when asked for (or "auto" and available) and the model is

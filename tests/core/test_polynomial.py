@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import dolfinx_lopinf as lo
 from dolfinx_lopinf.core import polynomial as pl
 from dolfinx_lopinf.errors import InputError
 
@@ -35,7 +36,7 @@ def synthetic():
     C, B = 0.05 * np.eye(r), rng.standard_normal((r, 1))
     rom = pl.PolynomialROM(pot, C, B)
     u = 2.0 * np.sin(1.3 * dt * (np.arange(n) + 0.5))[None]
-    tr = rom.simulate(0.5 * rng.standard_normal(r), np.zeros(r), dt, n, u)
+    tr = rom.simulate(0.5 * rng.standard_normal(r), np.zeros(r), dt, n, inputs=u, on_failure="stop")
     assert tr.stable
     return pot, C, B, pl.midpoint_data(tr.Qh, dt, u)
 
@@ -122,8 +123,8 @@ def test_avf_conserves_energy_and_midpoint_bounds_it():
     avf = rom.simulate(q0, np.zeros(3), 0.05, 2000, scheme="avf")
     mid = rom.simulate(q0, np.zeros(3), 0.05, 2000, scheme="midpoint")
     assert avf.stable and mid.stable
-    assert np.abs(avf.energy - avf.energy[0]).max() < 1e-11 * avf.energy[0]
-    drift = np.abs(mid.energy - mid.energy[0]) / mid.energy[0]
+    assert np.abs(avf.info["energy"] - avf.info["energy"][0]).max() < 1e-11 * avf.info["energy"][0]
+    drift = np.abs(mid.info["energy"] - mid.info["energy"][0]) / mid.info["energy"][0]
     assert drift.max() < 1e-2
     # bounded: the second half oscillates no wider than the first (symplectic, no trend)
     assert drift[1000:].max() < 2 * drift[:1000].max() + 1e-12
@@ -245,14 +246,14 @@ def test_compiled_loop_matches_numpy(scheme, kind, forced):
     rom = pl.PolynomialROM(model, C, B if forced else None)
     u = np.vstack([np.sin(1.1 * dt * (np.arange(n) + 0.5)), np.cos(0.4 * dt * np.arange(n))])
     q0, v0 = 0.4 * rng.standard_normal(r), 0.1 * rng.standard_normal(r)
-    a = rom.simulate(q0, v0, dt, n, u if forced else None, scheme=scheme, backend="numpy")
-    b = rom.simulate(q0, v0, dt, n, u if forced else None, scheme=scheme, backend="numba")
+    a = rom.simulate(q0, v0, dt, n, inputs=u if forced else None, scheme=scheme, backend="numpy")
+    b = rom.simulate(q0, v0, dt, n, inputs=u if forced else None, scheme=scheme, backend="numba")
     assert (a.backend, b.backend) == ("numpy", "numba")
     assert a.stable and b.stable
-    assert a.newton_iterations == b.newton_iterations
-    assert _rel(a.Qh, b.Qh) <= 1e-12 and _rel(a.P, b.P) <= 1e-12
-    if a.energy is not None:
-        assert _rel(a.energy, b.energy) <= 1e-12
+    assert a.info["newton_iterations"] == b.info["newton_iterations"]
+    assert _rel(a.Qh, b.Qh) <= 1e-12 and _rel(a.Vh, b.Vh) <= 1e-12
+    if a.info["energy"] is not None:
+        assert _rel(a.info["energy"], b.info["energy"]) <= 1e-12
 
 
 @needs_numba
@@ -262,8 +263,10 @@ def test_compiled_loop_stops_where_numpy_stops():
     pot, _ = _sos_potential(r, seed=3)
     bad = pl.PolynomialPotential(pot.K, pot.c3, -5.0 * np.abs(pot.c4))
     rom = pl.PolynomialROM(bad)
-    a = rom.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, backend="numpy", blowup=1e3)
-    b = rom.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, backend="numba", blowup=1e3)
+    a = rom.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, backend="numpy", blowup=1e3,
+                     on_failure="stop")
+    b = rom.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, backend="numba", blowup=1e3,
+                     on_failure="stop")
     assert not a.stable and not b.stable
     done = np.isfinite(a.Qh[0])
     np.testing.assert_array_equal(done, np.isfinite(b.Qh[0]))
@@ -329,11 +332,11 @@ def test_absolute_tolerance_is_honoured_by_both_loops():
     q0 = 0.3 * np.random.default_rng(22).standard_normal(r)
     tight = rom.simulate(q0, np.zeros(r), dt, n, backend="numpy")
     loose = rom.simulate(q0, np.zeros(r), dt, n, backend="numpy", atol=1e-5)
-    assert loose.newton_iterations < tight.newton_iterations
+    assert loose.info["newton_iterations"] < tight.info["newton_iterations"]
     assert _rel(tight.Qh, loose.Qh) < 1e-3
     if compiled.available():
         fast = rom.simulate(q0, np.zeros(r), dt, n, backend="numba", atol=1e-5)
-        assert fast.newton_iterations == loose.newton_iterations
+        assert fast.info["newton_iterations"] == loose.info["newton_iterations"]
         assert _rel(loose.Qh, fast.Qh) <= 1e-12
     for bad in (-1.0, float("nan"), "x"):
         with pytest.raises(InputError, match="atol"):
@@ -350,10 +353,10 @@ def test_lazy_jacobian_agrees_with_newton(scheme):
     rom = pl.PolynomialROM(pot, 0.02 * np.eye(r), rng.standard_normal((r, 1)))
     u = np.sin(0.9 * dt * (np.arange(n) + 0.5))[None]
     q0 = 0.4 * rng.standard_normal(r)
-    a = rom.simulate(q0, np.zeros(r), dt, n, u, scheme=scheme, tol=1e-12, backend="numpy")
-    b = rom.simulate(q0, np.zeros(r), dt, n, u, scheme=scheme, tol=1e-12, jacobian="lazy")
+    a = rom.simulate(q0, np.zeros(r), dt, n, inputs=u, scheme=scheme, tol=1e-12, backend="numpy")
+    b = rom.simulate(q0, np.zeros(r), dt, n, inputs=u, scheme=scheme, tol=1e-12, jacobian="lazy")
     assert a.stable and b.stable and b.backend == "numpy"
-    assert a.jacobians == a.newton_iterations and b.jacobians < a.jacobians / 3
+    assert a.info["jacobians"] == a.info["newton_iterations"] and b.info["jacobians"] < a.info["jacobians"] / 3
     assert _rel(a.Qh, b.Qh) <= 1e-9
     with pytest.raises(InputError, match="jacobian"):
         rom.simulate(q0, np.zeros(r), dt, 3, jacobian="sometimes")
@@ -370,10 +373,45 @@ def test_newton_does_not_hang_on_the_last_bits():
     z = np.load(Path(__file__).with_name("data") / "svk_probe_fit_r6.npz")
     pot = pl.PolynomialPotential.from_coefficients(z["coefficients"], 6)
     rom = pl.PolynomialROM(pot, z["C"], z["B"])
-    args = (np.zeros(6), np.zeros(6), float(z["dt"]), z["inputs_mid"].shape[1], z["inputs_mid"])
-    ref = rom.simulate(*args, backend="numpy")
+    args = (np.zeros(6), np.zeros(6), float(z["dt"]), z["inputs_mid"].shape[1])
+    ref = rom.simulate(*args, inputs=z["inputs_mid"], backend="numpy")
     assert ref.stable
     if compiled.available():
-        tr = rom.simulate(*args, backend="numba")
+        tr = rom.simulate(*args, inputs=z["inputs_mid"], backend="numba")
         assert tr.stable
         assert _rel(ref.Qh, tr.Qh) < 1e-10
+
+
+def test_the_simulate_contract_and_named_bad_inputs():
+    """The polynomial ROM takes the contract of every ROM (Trajectory, inputs=, every=,
+    on_failure=) and refuses what it used to run silently (NaN operators or states, inputs
+    to an unforced model), warns on a damping that is not dissipative."""
+    r = 2
+    pot, _ = _sos_potential(r, seed=3)
+    with pytest.raises(InputError, match="C contains NaN"):
+        pl.PolynomialROM(pot, C=np.full((r, r), np.nan))
+    with pytest.raises(InputError, match="B contains NaN or inf"):
+        pl.PolynomialROM(pot, B=np.full((r, 1), np.inf))
+    with pytest.warns(lo.errors.NonLagrangianWarning, match="C is indefinite"):
+        pl.PolynomialROM(pot, C=np.diag([1.0, -1.0]))
+    rom = pl.PolynomialROM(pot, B=np.ones((r, 1)))
+    with pytest.raises(InputError, match="q0"):
+        rom.simulate(np.array([np.nan, 0.0]), np.zeros(r), 0.01, 5)
+    with pytest.raises(InputError, match="inputs contain NaN"):
+        rom.simulate(np.zeros(r), np.zeros(r), 0.01, 5, inputs=np.full((1, 5), np.nan))
+    with pytest.raises(InputError, match="unforced"):
+        pl.PolynomialROM(pot).simulate(np.zeros(r), np.zeros(r), 0.01, 5, inputs=np.ones((1, 5)))
+    free = rom.simulate(0.1 * np.ones(r), np.zeros(r), 0.01, 20, every=5)  # inputs=None: free
+    assert isinstance(free, lo.Trajectory) and free.Qh.shape == (r, 5) and free.stable
+    grid = rom.simulate(np.zeros(r), np.zeros(r), 0.01, 20, inputs=np.ones((1, 21)))
+    mid = rom.simulate(np.zeros(r), np.zeros(r), 0.01, 20, inputs=lambda t: np.ones(1))
+    np.testing.assert_allclose(grid.Qh, mid.Qh, rtol=1e-12, atol=1e-15)
+    bad = pl.PolynomialROM(pl.PolynomialPotential(pot.K, pot.c3, -5.0 * np.abs(pot.c4)))
+    with pytest.raises(lo.errors.StepFailedError, match="reduced step"):
+        bad.simulate(np.array([2.0, -1.5]), np.ones(r), 0.05, 400, blowup=1e3, backend="numpy")
+    with pytest.raises(InputError, match="eps must be a finite number >= 0"):
+        pl.fit_polynomial(pl.midpoint_data(np.ones((2, 40)), 0.1), eps=-1.0)
+    with pytest.raises(InputError, match="ridge must be a finite number >= 0"):
+        pl.fit_polynomial(pl.midpoint_data(np.ones((2, 40)), 0.1), ridge=float("nan"))
+    with pytest.raises(InputError, match="MidpointData"):
+        pl.fit_polynomial(np.ones((2, 40)))
