@@ -362,8 +362,15 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     relation, report["identification"] = _relation_for(requested, *_identification_pieces(
         trajs, svd, basis.r))
     relations = [relation]
-    if requested == "auto" and not isinstance(relation, schemes.FiniteDifferences):
-        relations.append(schemes.FiniteDifferences())
+    if requested == "auto":
+        # a refined scheme competes with the standard member nearest to it in the residual
+        # (listed first: kept unless the refinement predicts clearly better - a closure-biased
+        # refinement costs more at large r than the parameters it moved) and with differences
+        standard = report["identification"].get("best_member")
+        if standard is not None and standard != relation.spec:
+            relations.insert(0, schemes.from_spec(standard))
+        if not isinstance(relation, schemes.FiniteDifferences):
+            relations.append(schemes.FiniteDifferences())
     masses = _mass_candidates(mass)
     order = _candidates(relations, masses, dampings)
     if len(order) > 1:
@@ -425,6 +432,10 @@ def _relation_for(requested, pieces, check_r):
         members = standard_members() + [schemes.FiniteDifferences()]
         scheme, ident = identify(pieces, members=members, check_r=check_r)
         ident["coordinates"] = [int(pieces[0][0].shape[0]), int(check_r)]
+        if scheme not in members:  # a refinement: the standard member it refined
+            res = ident["residuals"]
+            floor = max(min(res.values()), 1e-10)
+            ident["best_member"] = next(m.spec for m in members if res[m.spec] <= 2.0 * floor)
         return scheme, ident
     residual = Residual(pieces)
     try:
