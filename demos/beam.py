@@ -95,7 +95,7 @@ def main(argv=None):
     for r in tqdm(cfg["r_values"], desc="ROMs", unit="r", disable=not root):
         for basis_name, full_basis in bases.items():
             basis = full_basis.truncate(r)
-            galerkin = lo.galerkin_rom(beam.system, basis.V, beam.state_map)
+            galerkin = lo.fem.galerkin_rom(beam.system, basis.V, beam.state_map)
             if root:
                 new_rows, trajs = _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt)
                 rows += [dict(row, basis=basis_name) for row in new_rows]
@@ -146,16 +146,16 @@ def _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt):
     """Fit L-OpInf and standard OpInf in ``basis``, add the Galerkin ROM, simulate all three
     with the midpoint VI and score them (METHOD.md section 5)."""
     Qh_all = basis.project(train.Q)
-    Qh, _, ddQh = lo.derivatives(Qh_all, train.times)
+    Qh, _, ddQh = lo.core.derivatives(Qh_all, train.times)
     Qbar, D2 = lo.core.ddt.variational_data(Qh_all, train.times)  # midpoint-DEL-consistent data
     fits, roms = {}, {"intrusive": galerkin}
-    for method, infer, data in (("lopinf", lo.infer_mechanical, (Qh, ddQh)),
-                                ("lopinf_del", lo.infer_mechanical, (Qbar, D2)),
-                                ("opinf", lo.infer_opinf, (Qh, ddQh))):
+    for method, infer, data in (("lopinf", lo.core.infer_mechanical, (Qh, ddQh)),
+                                ("lopinf_del", lo.core.infer_mechanical, (Qbar, D2)),
+                                ("opinf", lo.core.infer_opinf, (Qh, ddQh))):
         t0 = time.perf_counter()
         fits[method] = infer(data[0], None, data[1], damping=False)
         # standard OpInf's Kh is neither symmetric nor definite by design: no structure check
-        roms[method] = lo.LagrangianROM(K=fits[method].K, lagrangian=None if method != "opinf" else False,
+        roms[method] = lo.core.LagrangianROM(K=fits[method].K, lagrangian=None if method != "opinf" else False,
                                         meta={"infer_seconds": time.perf_counter() - t0})
     qh0, vh0 = basis.project(snaps.Q[:, 0]), basis.project(snaps.V[:, 0])
     E_ref = _fom_energy(galerkin, qh0[:, None], vh0[:, None])[0]

@@ -69,7 +69,7 @@ def main(argv=None):
         bases = comm.bcast({"euclidean-block": lo.pod(Q_train, r, blocks=train[0].blocks),
                             "mass-orthonormal": lo.pod(Q_train, r, weight=mass)} if root else None)
         for name, basis in bases.items():
-            galerkin = lo.galerkin_rom(beam.system, basis.V, beam.state_map)
+            galerkin = lo.fem.galerkin_rom(beam.system, basis.V, beam.state_map)
             if root:
                 rows += [dict(row, basis=name) for row in
                          _fit_and_score(train, [s for s, _ in tests], basis, galerkin, dt)]

@@ -144,15 +144,15 @@ def main(argv=None):
         Qh_all = Qh_full[:r]
         t_fit = time.perf_counter()
         if args.data == "newmark":  # the three-point relation Newmark snapshots obey exactly
-            Qbar, D1, D2, Ubar = lo.newmark_data(Qh_all, times, u_train[None])
-            ops = lo.infer_mechanical(Qbar, D1, D2, Ubar)
+            Qbar, D1, D2, Ubar = lo.core.ddt.newmark_data(Qh_all, times, u_train[None])
+            ops = lo.core.infer_mechanical(Qbar, D1, D2, Ubar)
         else:  # 8th-order finite differences (continuous-time operators)
-            Qh, dQh, ddQh = lo.derivatives(Qh_all, times)
-            ops = lo.infer_mechanical(Qh, dQh, ddQh, u_train[None, 4:-4])
-        Eh = lo.infer_output(Qh_all, train["Y"][None, : len(times)])
+            Qh, dQh, ddQh = lo.core.derivatives(Qh_all, times)
+            ops = lo.core.infer_mechanical(Qh, dQh, ddQh, u_train[None, 4:-4])
+        Eh = lo.core.infer_output(Qh_all, train["Y"][None, : len(times)])
         infer_s = time.perf_counter() - t_fit
-        lopinf = lo.LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=Eh, scheme="newmark")
-        intrusive = lo.LagrangianROM(K=Kg, M=Mg, C=Cg, B=Bg, E=Eg, scheme="newmark")
+        lopinf = lo.core.LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=Eh, scheme="newmark")
+        intrusive = lo.core.LagrangianROM(K=Kg, M=Mg, C=Cg, B=Bg, E=Eg, scheme="newmark")
         for method, rom in (("lopinf", lopinf), ("intrusive", intrusive)):
             row, plots = _score(method, rom, r, Mg, Kg, fom, inputs, args.train, t_train, t_end)
             row["infer_seconds"] = infer_s if method == "lopinf" else 0.0

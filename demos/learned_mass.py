@@ -43,15 +43,15 @@ def beam_rows(r_values, t_end):
     rows = []
     for r in r_values:
         basis = lo.pod(train.Q, r, blocks=train.blocks)
-        galerkin = lo.galerkin_rom(beam.system, basis.V, beam.state_map)
-        Qbar, D2 = lo.variational_data(basis.project(train.Q), train.times)
+        galerkin = lo.fem.galerkin_rom(beam.system, basis.V, beam.state_map)
+        Qbar, D2 = lo.core.ddt.variational_data(basis.project(train.Q), train.times)
         roms = {"intrusive": (galerkin, 0.0, {})}
         for mass in ("identity", "learned"):
             t0 = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
-                ops = lo.infer_mechanical(Qbar, None, D2, damping=False, mass=mass)
-            roms[f"lopinf_mass_{mass}"] = (lo.LagrangianROM(K=ops.K, M=ops.M),
+                ops = lo.core.infer_mechanical(Qbar, None, D2, damping=False, mass=mass)
+            roms[f"lopinf_mass_{mass}"] = (lo.core.LagrangianROM(K=ops.K, M=ops.M),
                                            time.perf_counter() - t0, ops.certificate)
         for method, (rom, infer_s, cert) in roms.items():
             tr = rom.simulate(basis.project(snaps.Q[:, 0]), basis.project(snaps.V[:, 0]),

@@ -87,7 +87,7 @@ def main(argv=None):
         basis = full_basis.truncate(r)
         V = basis.V
         for method, (K, t_fit) in _fit_operators(V, train, F_train, K_fom).items():
-            rom = lo.WaveROM(K=K, V=V, g=nl.g, dg=nl.dg, U=nl.U, meta={"method": method})
+            rom = lo.core.WaveROM(K=K, V=V, g=nl.g, dg=nl.dg, U=nl.U, meta={"method": method})
             row = {"method": method, "r": r, "infer_seconds": t_fit + pod_s,
                    "projection_error_train": basis.projection_error(train.Q),
                    "projection_error_test": basis.projection_error(Q_sub[:, k_train:])}
@@ -156,11 +156,11 @@ def _fit_operators(V, train, F_train, K_fom):
     """Kh of each method in basis V from the training states and forces (8th-order
     differences): L-OpInf (Kh symmetric), L-OpInf with Kh <= 0, standard OpInf (least
     squares), intrusive (V^T K V). Returns {method: (Kh, fit seconds)}."""
-    Qh, _, ddQh = lo.derivatives(V.T @ train.Q, train.times)
+    Qh, _, ddQh = lo.core.derivatives(V.T @ train.Q, train.times)
     Fh = (V.T @ F_train)[:, 4:-4]
     fits = {}
-    for method, fit in (("lopinf", lambda: lo.infer_wave(Qh, ddQh, Fh).K),
-                        ("lopinf_nsd", lambda: lo.infer_wave(Qh, ddQh, Fh, negative_semidefinite=True).K),
+    for method, fit in (("lopinf", lambda: lo.core.infer_wave(Qh, ddQh, Fh).K),
+                        ("lopinf_nsd", lambda: lo.core.infer_wave(Qh, ddQh, Fh, negative_semidefinite=True).K),
                         ("opinf", lambda: np.linalg.lstsq(Qh.T, (ddQh + Fh).T, rcond=None)[0].T)):
         t0 = time.perf_counter()
         K = fit()
@@ -204,7 +204,7 @@ def hyper_reduce(rom, train, dt, cfg, tol=1e-5):
     Qh = rom.V.T @ train.Q[:, :: max(1, train.Q.shape[1] // 200)]
     sample = hyper.ecsw(rom.V, Qh, rom.g, tol=tol)
     seconds = time.perf_counter() - t0
-    return lo.WaveROM(K=rom.K, V=rom.V[sample.rows], g=rom.g, dg=rom.dg, U=rom.U,
+    return lo.core.WaveROM(K=rom.K, V=rom.V[sample.rows], g=rom.g, dg=rom.dg, U=rom.U,
                       weights=sample.weights,
                       meta={"method": "lopinf_ecsw", "ecsw_seconds": seconds,
                             "ecsw_residual": sample.residual})
@@ -223,9 +223,9 @@ def step_time_vs_n(cfg, r, sizes=(2000, 20000), n_steps=2000):
                              progress=False)
         F = nl(snaps.Q)
         V = lo.pod(np.hstack([snaps.Q, F]), r).V
-        Qh, _, ddQh = lo.derivatives(V.T @ snaps.Q, snaps.times)
-        K = lo.infer_wave(Qh, ddQh, (V.T @ F)[:, 4:-4], negative_semidefinite=True).K
-        rom = lo.WaveROM(K=K, V=V, g=nl.g, dg=nl.dg, U=nl.U)
+        Qh, _, ddQh = lo.core.derivatives(V.T @ snaps.Q, snaps.times)
+        K = lo.core.infer_wave(Qh, ddQh, (V.T @ F)[:, 4:-4], negative_semidefinite=True).K
+        rom = lo.core.WaveROM(K=K, V=V, g=nl.g, dg=nl.dg, U=nl.U)
         hr = hyper_reduce(rom, snaps, scene.DT, cfg)
         vh0 = V.T @ v0_state(sg, v0)
         full = rom.simulate(np.zeros(r), vh0, scene.DT, n_steps)

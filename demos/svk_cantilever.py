@@ -20,7 +20,7 @@
    * ``poly_lopinf_ls``: the same data, gradient structure only (plain least squares);
    * ``poly_lopinf_traj``: the sos fit on the projected training trajectories' midpoint
      relation - fails: their reduced relation carries the truncated stiff content's closure;
-   * ``lopinf``: the paper's linear L-OpInf (``lo.infer_mechanical``) on the trajectories;
+   * ``lopinf``: the paper's linear L-OpInf (``lo.core.infer_mechanical``) on the trajectories;
    * ``intrusive``: the Galerkin polynomial ROM, its tensors from V^T F(V q) of the FOM at
      sampled q (exact for SVK, whose reduced force is a cubic polynomial; for neo-Hookean the
      best quartic-potential fit of the Galerkin force over the sampled region), C = alpha I +
@@ -101,7 +101,7 @@ def half_step_inputs(amp, n_steps, dt):
 def fom_runs(cfg, material):
     """Snapshots of every amplitude (training ones to t_train, test ones to t_end)."""
     cant = scene.build(material, cfg["cells"])
-    integ = lo.MidpointIntegrator(cant.system, scene.DT, prefix=f"svk_{material.replace('-', '')}_")
+    integ = lo.fem.MidpointIntegrator(cant.system, scene.DT, prefix=f"svk_{material.replace('-', '')}_")
     runs = {}
     for amp in cfg["train_amps"] + cfg["test_amps"]:
         cant.amplitude.value = amp
@@ -179,7 +179,7 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        lops = lo.infer_mechanical(data.Qbar, data.D1, data.D2, data.Ubar)
+        lops = lo.core.infer_mechanical(data.Qbar, data.D1, data.D2, data.Ubar)
     lin_pot = pl.PolynomialPotential(lops.K, np.zeros(pl.n_unknowns(r)["cubic"]),
                                      np.zeros(pl.n_unknowns(r)["quartic"]))
     models["lopinf"] = (lin_pot, lops.C, lops.B)

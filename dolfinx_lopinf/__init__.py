@@ -1,16 +1,18 @@
 """dolfinx_lopinf: structure-preserving, data-driven reduced-order models on DOLFINx.
 
-Pipeline (each stage a plain object, usable alone):
+The front door - the one-call path, fifteen names::
 
-    LagrangianSystem -> run (FOM) -> Snapshots -> pod (Basis) -> ddt.derivatives
-      -> infer_mechanical (L-OpInf) -> LagrangianROM.simulate -> Basis.reconstruct
+    rec = lo.SnapshotRecorder(u)                # your own dolfinx time loop ...
+    model = lo.fit(rec.snapshots(), r=4)        # ... or lo.run(lo.LagrangianSystem(L, ...))
+    traj = model.predict(n_steps, inputs=load)  # the ROM, stepped with your loop's scheme
+    lo.write_vtx("rom.bp", V, model.reconstruct(traj.Qh), traj.times)
 
-and for a non-quadratic (polynomial) potential: pod -> probe (black-box FOM steps at lifted
-samples) -> fit_polynomial -> PolynomialROM.simulate.
-
-The numpy core (``ddt``, ``basis``, ``inference``, ``rom``, ``metrics``, ``snapshots``)
-imports without DOLFINx; the FOM layer (``LagrangianSystem``, ``MidpointIntegrator``,
-``run``, ``galerkin_rom``) is loaded on first use.
+``fit``, ``ReducedModel``, ``Snapshots``, ``pod``, ``relative_error``, ``schemes`` (the time
+integrators as objects), ``errors`` and ``core`` (every step of the pipeline, numpy only:
+``core.infer_mechanical``, ``core.LagrangianROM``, ...) import without DOLFINx;
+``SnapshotRecorder``, ``LagrangianSystem``, ``run``, ``write_vtx``, ``point_output_matrix``,
+``DerivedOutput`` and ``fem`` (the DOLFINx layer: integrators, state maps, probes, Galerkin
+projection) are loaded on first use.
 """
 
 import importlib.util as _ilu
@@ -20,53 +22,39 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
-from . import _mpi_abort, errors
-from .core import ddt, schemes
-from .core.basis import Basis, pod
+from . import _mpi_abort, core, errors
+from .core import schemes
+from .core.basis import pod
 from .core.fit import ReducedModel, fit
-from .core.ddt import derivatives, newmark_data, variational_data
-from .core.inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
-                        infer_wave)
-from .core.metrics import energy_error, relative_error
-from .core.polynomial import PolynomialROM, fit_polynomial, point_data
-from .core.rom import LagrangianROM, Trajectory, WaveROM, load_rom, save_rom
-from .core.selection import Choice, choose_r
+from .core.metrics import relative_error
 from .core.snapshots import Snapshots
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 # Several MPI ranks: an exception left uncaught on one rank aborts the job instead of leaving
 # the others waiting forever in a collective (see dolfinx_lopinf._mpi_abort).
 _mpi_abort.install()
 
 _LAZY = {
-    "LagrangianSystem": "fem.lagrangian",
-    "MidpointIntegrator": "fem.integrators",
-    "StepFailed": "fem.integrators",
-    "run": "fem.fom",
-    "StateMap": "fem.fom",
-    "point_output_matrix": "fem.fom",
-    "galerkin_rom": "fem.intrusive",
     "SnapshotRecorder": "fem.recorder",
+    "LagrangianSystem": "fem.lagrangian",
+    "run": "fem.fom",
     "write_vtx": "fem.vtx",
-    "states_to_function": "fem.vtx",
-    "state_rows": "fem.vtx",
-    "probe": "fem.probes",
-    "probe_points": "fem.probes",
-    "GalerkinForce": "fem.galerkin_nonlinear",
+    "point_output_matrix": "fem.fom",
     "DerivedOutput": "fem.derived",
 }
 
 
 def __getattr__(name):
+    import importlib
+
+    if name == "fem":
+        return importlib.import_module(".fem", __name__)
     if name in _LAZY:
-        import importlib
-
         return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r} (the step-by-step "
+                         "functions are in dolfinx_lopinf.core and dolfinx_lopinf.fem)")
 
 
-__all__ = ["ddt", "errors", "schemes", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
-           "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
-           "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom",
-           "fit_polynomial", "PolynomialROM", "point_data", *_LAZY]
+__all__ = ["fit", "ReducedModel", "Snapshots", "pod", "relative_error", "schemes", "errors",
+           "core", "fem", *_LAZY]

@@ -86,7 +86,7 @@ class NonLagrangianWarning(LOpInfWarning, RuntimeWarning):
     """A reduced model's operators are not those of a Lagrangian system (K or C not
     symmetric, K or M indefinite): its energy is not conserved or dissipated and its
     trajectory may grow without bound. Legitimate for standard OpInf models; pass
-    ``lagrangian=False`` to :class:`dolfinx_lopinf.LagrangianROM` to say so."""
+    ``lagrangian=False`` to :class:`dolfinx_lopinf.core.LagrangianROM` to say so."""
 
 
 class SchemeMismatchWarning(LOpInfWarning):

@@ -157,7 +157,7 @@ def interrupted_run(monkeypatch):
     import dolfinx_lopinf as lo
 
     def run(system, q0, v0, prefix, kill_after, **kw):
-        original = lo.MidpointIntegrator.step
+        original = lo.fem.MidpointIntegrator.step
         calls = {"n": 0}
 
         def step(self):
@@ -167,7 +167,7 @@ def interrupted_run(monkeypatch):
             original(self)
 
         with monkeypatch.context() as m:
-            m.setattr(lo.MidpointIntegrator, "step", step)
+            m.setattr(lo.fem.MidpointIntegrator, "step", step)
             with pytest.raises(Killed):
                 lo.run(system, q0, v0, progress=False, checkpoint=prefix, **kw)
 

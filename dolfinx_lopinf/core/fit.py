@@ -158,7 +158,7 @@ class ReducedModel:
         if "basis_rows" not in extras or missing:
             raise FileFormatError(f"{path}: a ROM without the basis, scheme and time step of lo.fit "
                                   f"(missing: {['basis_rows'] * ('basis_rows' not in extras) + missing}); "
-                                  "load it with lo.load_rom")
+                                  "load it with lo.core.rom.load_rom")
         try:
             scheme = schemes.from_spec(rom.meta["fit_scheme"])
         except InputError as exc:
@@ -328,7 +328,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
             :mod:`dolfinx_lopinf.core.mass`). Without cvxpy, auto is Mh = I.
         basis: a :class:`~dolfinx_lopinf.core.basis.Basis` to use; default the POD of all
             trajectories' states (block-diagonal when the snapshots name blocks).
-        eps, ridge, strict: as in :func:`~dolfinx_lopinf.infer_mechanical`.
+        eps, ridge, strict: as in :func:`~dolfinx_lopinf.core.infer_mechanical`.
         holdout: the fraction of every trajectory held back to choose the model.
 
     Returns:

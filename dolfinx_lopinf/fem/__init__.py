@@ -1,2 +1,19 @@
-"""The DOLFINx layer: Lagrangian -> forms, integrators and the one time loop, recording and
-state maps, intrusive projection, the gray-box nonlinearity, streaming POD, VTX output."""
+"""The DOLFINx layer: a UFL Lagrangian -> forms, integrators and the one time loop (``run``),
+recording from your own loop (``SnapshotRecorder``) and state maps, point outputs and derived
+outputs (UFL expressions of the reconstructed field), intrusive projection, the gray-box
+nonlinearity, streaming POD, probes, VTX output. Importing it imports DOLFINx."""
+
+from .derived import DerivedOutput
+from .fom import StateMap, output_matrix_in_state, point_output_matrix, run
+from .galerkin_nonlinear import GalerkinForce
+from .integrators import MidpointIntegrator, NewmarkIntegrator
+from .intrusive import galerkin_rom
+from .lagrangian import LagrangianSystem
+from .probes import probe, probe_points
+from .recorder import SnapshotRecorder
+from .vtx import state_rows, states_to_function, write_vtx
+
+__all__ = ["DerivedOutput", "GalerkinForce", "LagrangianSystem", "MidpointIntegrator",
+           "NewmarkIntegrator", "SnapshotRecorder", "StateMap", "galerkin_rom",
+           "output_matrix_in_state", "point_output_matrix", "probe", "probe_points", "run",
+           "state_rows", "states_to_function", "write_vtx"]

@@ -7,7 +7,7 @@
 
 For r in {2, 4, ..., 20} and K in {3000, 6000, 10000} snapshots it times
 
-* ``ours``        - :func:`dolfinx_lopinf.infer_mechanical` / ``infer_wave`` (Gram pass + solve),
+* ``ours``        - :func:`dolfinx_lopinf.core.infer_mechanical` / ``infer_wave`` (Gram pass + solve),
 * ``cvxpy_comp``  - cvxpy/Clarabel on the same compressed problem (after our Gram pass),
 * ``cvxpy_naive`` - cvxpy/Clarabel on the raw ||ddQh + K Qh + ...||_F over all K snapshots
                     (slow: by default only for r <= ``--naive-up-to``),
@@ -256,7 +256,7 @@ def wave_data(r, n, seed=0):
 
 def _fit_for(kind: str, r: int, K: int, beam, eps: float):
     """The fit to time on one data set: ``(fit, Qh, dQh, target, U, damping)``; ``fit()`` runs
-    :func:`~dolfinx_lopinf.infer_mechanical` (or ``infer_wave``) and takes ``solver=``."""
+    :func:`~dolfinx_lopinf.core.infer_mechanical` (or ``infer_wave``) and takes ``solver=``."""
     if kind == "beam":
         from ..core.basis import pod
 

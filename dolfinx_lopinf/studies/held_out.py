@@ -3,7 +3,7 @@
     python -m dolfinx_lopinf.studies.held_out [--seeds 0:26] [--conservative] [--out FILE.json]
 
 For every kind (forced, rigid, mixed, short), r in {4, 6, 12, 20}, K in {3000, 10000} and
-seed, :func:`dolfinx_lopinf.infer_mechanical` with the default solver - (Kh, Ch, Bh), or with
+seed, :func:`dolfinx_lopinf.core.infer_mechanical` with the default solver - (Kh, Ch, Bh), or with
 ``--conservative`` (Kh, Bh) alone, one constrained block; prints how many fits each path
 answered (symmetric or Lyapunov minimiser, interior point, its crossover, ADMM, barrier), the
 uncertified ones, and the solve time per r (median and maximum of the best of 3 runs).

@@ -16,7 +16,7 @@ fitted the way its tutorials fit it, so the demos can show it beside L-OpInf.
   because the models below have no constant term and the equilibrium is 0);
 * the basis (``basis=``): ``"stacked"`` - one ``opinf.basis.PODBasis`` with 2r vectors of the
   scaled [q; q_t]; ``"blocks"`` - an ``opinf.basis.BasisMulti`` with an r-vector
-  ``PODBasis`` per variable; or a given (n, r) array / :class:`dolfinx_lopinf.Basis` used
+  ``PODBasis`` per variable; or a given (n, r) array / :class:`dolfinx_lopinf.core.Basis` used
   for both q and q_t (``opinf.basis.LinearBasis``, with the Basis' weight, e.g. the mass
   matrix). Either way the first-order model has 2r states - as many reduced unknowns as a
   second-order ROM of dimension r has (q and q_t);
@@ -332,7 +332,7 @@ def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stack
             differences of Q).
         inputs: None (model "A"), or the training inputs for model "AB": an (m, K) / (K,)
             array aligned with ``times`` or a callable t -> (m,) (or scalar for m = 1).
-        basis: ``"stacked"``, ``"blocks"``, or an (n, r) array / :class:`dolfinx_lopinf.Basis`
+        basis: ``"stacked"``, ``"blocks"``, or an (n, r) array / :class:`dolfinx_lopinf.core.Basis`
             used for q and for q_t (with the Basis' weight; ``r`` must then equal its r).
         svdsolver: ``PODBasis`` SVD: ``"dense"`` (opinf's default, the tutorials') or
             ``"randomized"`` (opinf's option for large snapshot matrices; seeded here, so

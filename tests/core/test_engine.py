@@ -17,7 +17,7 @@ def _forced_damped_data(r=5, m=2, n=6000, dt=2e-3, noise=0.0, seed=0):
     Cm = rng.standard_normal((r, r))
     C = 0.05 * Cm @ Cm.T / r + 0.01 * np.eye(r)
     B = rng.standard_normal((r, m))
-    rom = lo.LagrangianROM(K=K, C=C, B=B)
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B)
     freqs = rng.uniform(0.5, 3.0, size=(m, 3))
 
     def u(t):
@@ -26,7 +26,7 @@ def _forced_damped_data(r=5, m=2, n=6000, dt=2e-3, noise=0.0, seed=0):
     tr = rom.simulate(rng.standard_normal(r), rng.standard_normal(r), dt, n, inputs=u)
     U = np.column_stack([u(t) for t in tr.times])
     Q = tr.Qh + noise * np.abs(tr.Qh).max() * rng.standard_normal(tr.Qh.shape)
-    Qh, dQh, ddQh = lo.derivatives(Q, tr.times)
+    Qh, dQh, ddQh = lo.core.derivatives(Q, tr.times)
     return (Qh, dQh, ddQh, U[:, 4:-4]), (K, C, B)
 
 
@@ -38,7 +38,7 @@ def _quiet(fn, *args, **kw):
 
 def test_clean_forced_damped_data_recovers_the_operators():
     data, (K, C, B) = _forced_damped_data()
-    ops = lo.infer_mechanical(*data)
+    ops = lo.core.infer_mechanical(*data)
     assert np.linalg.norm(ops.K - K) / np.linalg.norm(K) < 1e-4
     assert np.linalg.norm(ops.C - C) / np.linalg.norm(C) < 1e-2
     assert np.linalg.norm(ops.B - B) / np.linalg.norm(B) < 1e-4
@@ -49,11 +49,11 @@ def test_active_constraints_match_clarabel():
     """Noisy data: the unconstrained fit is indefinite, so the PSD constraints are active;
     our interior point solution and Clarabel's reach the same objective."""
     data, _ = _forced_damped_data(noise=1e-3, seed=3)
-    unconstrained = lo.infer_opinf(*data)
+    unconstrained = lo.core.infer_opinf(*data)
     assert min(np.linalg.eigvals(unconstrained.K).real.min(),
                np.linalg.eigvals(unconstrained.C).real.min()) < 0
-    ours = lo.infer_mechanical(*data)
-    ref = _quiet(lo.infer_mechanical, *data, solver="cvxpy")
+    ours = lo.core.infer_mechanical(*data)
+    ref = _quiet(lo.core.infer_mechanical, *data, solver="cvxpy")
     assert ours.certificate["solver"] == "ipm" and ours.certificate["duality_gap"] <= 1e-8
     gap = (ours.certificate["objective"] - ref.certificate["objective"]) / ref.certificate["objective"]
     assert gap < 1e-6, gap
@@ -98,9 +98,9 @@ def test_conservative_fit_agrees_with_clarabel_when_constraint_active():
     Qh = rng.standard_normal((r, n))
     K_true = np.diag([3.0, 1.0, -1.0, 2.0])  # indefinite: the constraint must act
     ddQh = -K_true @ Qh + 0.01 * rng.standard_normal((r, n))
-    ours = lo.infer_mechanical(Qh, None, ddQh, damping=False)
-    admm = lo.infer_mechanical(Qh, None, ddQh, damping=False, solver="admm")
-    ref = _quiet(lo.infer_mechanical, Qh, None, ddQh, damping=False, solver="cvxpy")
+    ours = lo.core.infer_mechanical(Qh, None, ddQh, damping=False)
+    admm = lo.core.infer_mechanical(Qh, None, ddQh, damping=False, solver="admm")
+    ref = _quiet(lo.core.infer_mechanical, Qh, None, ddQh, damping=False, solver="cvxpy")
     assert ours.certificate["solver"] == "ipm" and ours.certificate["duality_gap"] <= 1e-8
     assert admm.certificate["solver"] == "admm"
     for fit in (ours, admm):
@@ -115,17 +115,17 @@ def test_infer_wave_recovers_a_symmetric_operator():
     Qh = rng.standard_normal((r, n))
     Fh = np.sin(Qh)
     ddQh = K @ Qh - Fh
-    ops = lo.infer_wave(Qh, ddQh, Fh)
+    ops = lo.core.infer_wave(Qh, ddQh, Fh)
     assert np.allclose(ops.K, K, atol=1e-10)
     assert np.array_equal(ops.K, ops.K.T)
 
 
 def test_rom_save_load_roundtrip_and_newmark(tmp_path):
     _, (K, C, B) = _forced_damped_data(r=3, m=1)
-    rom = lo.LagrangianROM(K=K, C=C, B=B, E=np.ones((1, 3)), scheme="newmark",
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, E=np.ones((1, 3)), scheme="newmark",
                            meta={"method": "lopinf"})
-    path = lo.save_rom(tmp_path / "rom.npz", rom, basis_rows=np.eye(3)[:2], rows=[7, 9])
-    loaded, extras = lo.load_rom(path)
+    path = lo.core.rom.save_rom(tmp_path / "rom.npz", rom, basis_rows=np.eye(3)[:2], rows=[7, 9])
+    loaded, extras = lo.core.rom.load_rom(path)
     assert loaded.scheme == "newmark" and loaded.meta == {"method": "lopinf"}
     assert np.array_equal(extras["rows"], [7, 9])
     u = lambda t: np.array([np.sin(t)])
@@ -141,7 +141,7 @@ def test_forced_rom_converges_at_second_order(scheme):
     from scipy.integrate import solve_ivp
 
     K, C, B = np.diag([1.0, 4.0]), 0.1 * np.eye(2), np.array([[1.0], [0.5]])
-    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme=scheme)
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme=scheme)
     u = lambda t: np.array([np.sin(2 * t)])
     rhs = lambda t, y: np.concatenate([y[2:], B @ u(t) - C @ y[2:] - K @ y[:2]])
     ref = solve_ivp(rhs, [0, 4], [1, 0, 0, 0], rtol=1e-12, atol=1e-13).y[:2, -1]
@@ -154,19 +154,19 @@ def test_bad_inputs_are_named():
     data, _ = _forced_damped_data(r=3, m=1)
     Qh, dQh, ddQh, U = data
     with pytest.raises(ValueError, match="ddQh must have"):
-        lo.infer_mechanical(Qh, dQh, ddQh[:, :-1], U)
+        lo.core.infer_mechanical(Qh, dQh, ddQh[:, :-1], U)
     bad = Qh.copy()
     bad[1, 5] = np.inf
     with pytest.raises(ValueError, match="non-finite"):
-        lo.infer_mechanical(bad, dQh, ddQh, U)
+        lo.core.infer_mechanical(bad, dQh, ddQh, U)
     dup = (np.vstack([Qh, Qh[:1]]), np.vstack([dQh, dQh[:1]]), np.vstack([ddQh, ddQh[:1]]), U)
     with pytest.raises(lo.errors.RankDeficientDataError, match="rank 7 < 9"):
-        lo.infer_mechanical(*dup, strict=True)
+        lo.core.infer_mechanical(*dup, strict=True)
     with pytest.warns(lo.errors.IllConditionedDataWarning, match="rank 7 < 9"):
-        lo.infer_mechanical(*dup)
+        lo.core.infer_mechanical(*dup)
     with pytest.raises(ValueError, match="unknown solver"):
-        lo.infer_mechanical(Qh, dQh, ddQh, U, solver="sdpt3")
-    rom = lo.LagrangianROM(K=np.eye(3), B=np.ones((3, 1)))
+        lo.core.infer_mechanical(Qh, dQh, ddQh, U, solver="sdpt3")
+    rom = lo.core.LagrangianROM(K=np.eye(3), B=np.ones((3, 1)))
     with pytest.raises(ValueError, match="inputs must have shape"):
         rom.simulate(np.zeros(3), np.zeros(3), 0.1, 10, inputs=np.zeros((2, 10)))
 
@@ -258,9 +258,9 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
 
         lo.core.inference.gram_data = spy
         try:
-            lo.infer_mechanical(*data)
+            lo.core.infer_mechanical(*data)
             with pytest.raises(ValueError):
-                lo.infer_mechanical(*data[:3], np.full_like(data[3], np.nan))
+                lo.core.infer_mechanical(*data[:3], np.full_like(data[3], np.nan))
         finally:
             lo.core.inference.gram_data = original
         after = [p["num_threads"] for p in ctl.info() if p["user_api"] == "blas"]

@@ -26,7 +26,7 @@ EMBED = np.linalg.qr(np.random.default_rng(9).standard_normal((6, 4)))[0]
 
 def _newmark(K, C, B, dt, n, q0, u):
     """A Newmark (1/2, 1/4) loop, as a user would write it: states at every step."""
-    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
     tr = rom.simulate(q0, np.zeros(len(q0)), dt, n, inputs=u)
     t = dt * np.arange(n + 1)
     U = np.array([[u(s)[0] for s in t]])

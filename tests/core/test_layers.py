@@ -24,7 +24,7 @@ import dolfinx_lopinf as lo
 # a 3-dof Newmark system, forced: the core's whole black-box path
 rng = np.random.default_rng(0)
 K = np.diag([1.0, 4.0, 9.0]); C = 0.01 * K; B = np.array([[1.0], [0.5], [0.2]])
-rom = lo.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
+rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
 dt, n = 0.05, 800
 u = lambda t: np.array([np.sin(1.3 * t) + 0.3 * np.sin(3.1 * t)])
 tr = rom.simulate(np.zeros(3), np.zeros(3), dt, n, inputs=u)

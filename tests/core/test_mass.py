@@ -38,7 +38,7 @@ def _unseen(t):
 
 
 def _run(M, K, C, B, u, n=1500, dt=0.01):
-    rom = lo.LagrangianROM(K=K, M=M, C=C, B=B, scheme="newmark")
+    rom = lo.core.LagrangianROM(K=K, M=M, C=C, B=B, scheme="newmark")
     tr = rom.simulate(np.zeros(len(K)), np.zeros(len(K)), dt, n, inputs=u)
     return tr
 
@@ -46,11 +46,11 @@ def _run(M, K, C, B, u, n=1500, dt=0.01):
 def _data(Qh, u=_load, dt=0.01):
     t = dt * np.arange(Qh.shape[1])
     U = np.array([u(s)[0] for s in t])[None, :]
-    return lo.newmark_data(Qh, t, U)
+    return lo.core.ddt.newmark_data(Qh, t, U)
 
 
 def _fit(tr, u=_load, dt=0.01, **kw):
-    return lo.infer_mechanical(*_data(tr.Qh, u, dt), **kw)
+    return lo.core.infer_mechanical(*_data(tr.Qh, u, dt), **kw)
 
 
 def _noisy(Qh, level=1e-4, seed=5):
@@ -76,7 +76,7 @@ def test_learned_mass_recovers_a_non_identity_mass_system():
     test = _run(M, K, C, B, _unseen, n=800)
     errors = {}
     for name, ops in (("learned", learned), ("identity", fixed)):
-        rom = lo.LagrangianROM(K=ops.K, M=ops.M, C=ops.C, B=ops.B, scheme="newmark")
+        rom = lo.core.LagrangianROM(K=ops.K, M=ops.M, C=ops.C, B=ops.B, scheme="newmark")
         pred = rom.simulate(np.zeros(4), np.zeros(4), 0.01, 800, inputs=_unseen)
         errors[name] = lo.relative_error(test.Qh, pred.Qh)
     # measured: learned ~1e-6, identity ~0.3 (wrong model form)
@@ -92,8 +92,8 @@ def test_learned_mass_does_not_depend_on_the_coordinates():
     train = _run(M, K, C, B, _load)
     Qh = _noisy(train.Qh)
     T = np.linalg.qr(np.random.default_rng(5).standard_normal((4, 4)))[0] @ np.diag([1, 10, 0.1, 3.0])
-    a = lo.infer_mechanical(*_data(Qh), mass="learned")
-    b = lo.infer_mechanical(*_data(np.linalg.solve(T, Qh)), mass="learned")
+    a = lo.core.infer_mechanical(*_data(Qh), mass="learned")
+    b = lo.core.infer_mechanical(*_data(np.linalg.solve(T, Qh)), mass="learned")
     assert a.certificate["certified"] and b.certificate["certified"]
     # the dynamics M^-1 K, M^-1 C, M^-1 B are what the data determine sharply; M's modal scales
     # only through the regulariser, to ~sqrt(gap / rho) (measured ~1e-3 relative)
@@ -115,9 +115,9 @@ def test_learned_mass_bad_input_is_named():
         _fit(train, mass="lumped")
     t = 0.01 * np.arange(301)
     with pytest.raises(lo.errors.InputError, match="dQh"):
-        lo.infer_mechanical(train.Qh, None, train.Qh, mass="learned")
+        lo.core.infer_mechanical(train.Qh, None, train.Qh, mass="learned")
     with pytest.raises(lo.errors.InputError, match="static"):
-        lo.infer_mechanical(train.Qh, train.Qh, 0 * train.Qh, mass="learned")
+        lo.core.infer_mechanical(train.Qh, train.Qh, 0 * train.Qh, mass="learned")
     with pytest.raises(lo.errors.InputError, match="mass must be"):
         lo.fit(lo.Snapshots(t, train.Qh), 2, mass="diagonal")
     with pytest.raises(lo.errors.InputError, match="'auto'.*'cvxpy'"):
@@ -220,10 +220,10 @@ def test_singular_state_covariance_warns_naming_the_dimension_or_raises_with_str
     Qh = _noisy(train.Qh, 1e-6)
     data = _data(np.vstack([Qh, Qh[0] + Qh[1]]))
     with pytest.warns(lo.errors.IllConditionedDataWarning, match="only 2 of the r = 3"):
-        ops = lo.infer_mechanical(*data, mass="learned")
+        ops = lo.core.infer_mechanical(*data, mass="learned")
     assert np.isfinite(ops.M).all() and np.linalg.eigvalsh(ops.M).min() > 0
     with pytest.raises(lo.errors.RankDeficientDataError, match="only 2 of the r = 3"):
-        lo.infer_mechanical(*data, mass="learned", strict=True)
+        lo.core.infer_mechanical(*data, mass="learned", strict=True)
 
 
 @pytest.mark.parametrize("backend", ["numba"])
@@ -252,7 +252,7 @@ def test_held_out_style_sets_are_certified(kind, r):
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
-        cert = lo.infer_mechanical(*mass_data(kind, r), mass="learned").certificate
+        cert = lo.core.infer_mechanical(*mass_data(kind, r), mass="learned").certificate
     assert cert["certified"] and cert["duality_gap"] <= 1e-8, cert
 
 
@@ -275,7 +275,7 @@ def test_rounding_does_not_decide_the_fit(kind, r):
     bent = [X * (1.0 + 1e-15 * rng.standard_normal(X.shape)) for X in data]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
-        a, b = (lo.infer_mechanical(*d, mass="learned") for d in (data, bent))
+        a, b = (lo.core.infer_mechanical(*d, mass="learned") for d in (data, bent))
     assert a.certificate["certified"] and b.certificate["certified"]
     assert abs(a.certificate["iterations"] - b.certificate["iterations"]) <= 4
     for X, Y in zip((a.K, a.C, a.B), (b.K, b.C, b.B)):

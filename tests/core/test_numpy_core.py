@@ -25,18 +25,18 @@ def test_eighth_order_differences_converge_at_order_eight(which):
 def test_derivatives_align_columns_and_reject_bad_grids():
     t = np.linspace(0, 1, 50)
     Q = np.vstack([t**2, t**3])
-    Qh, dQh, ddQh = lo.derivatives(Q, t)
+    Qh, dQh, ddQh = lo.core.derivatives(Q, t)
     assert Qh.shape == dQh.shape == ddQh.shape == (2, 42)
     assert np.allclose(Qh, Q[:, 4:-4])
     assert np.allclose(ddQh[0], 2.0) and np.allclose(ddQh[1], 6 * t[4:-4])
     with pytest.raises(ValueError, match="at least 9 time samples"):
-        lo.derivatives(Q[:, :8], t[:8])
+        lo.core.derivatives(Q[:, :8], t[:8])
     with pytest.raises(ValueError, match="uniformly spaced"):
-        lo.derivatives(Q, t**2)
+        lo.core.derivatives(Q, t**2)
     bad = Q.copy()
     bad[1, 7] = np.nan
     with pytest.raises(ValueError, match="non-finite"):
-        lo.derivatives(bad, t)
+        lo.core.derivatives(bad, t)
 
 
 def test_pod_projection_reconstruction_round_trip():
@@ -83,7 +83,7 @@ def _oscillator_data(K_true, n=2000, dt=2e-3, seed=0):
     t = dt * np.arange(n)
     a, b = rng.standard_normal(len(w)), rng.standard_normal(len(w))
     modal = a[:, None] * np.cos(np.outer(w, t)) + b[:, None] * np.sin(np.outer(w, t))
-    return lo.derivatives(P @ modal, t)
+    return lo.core.derivatives(P @ modal, t)
 
 
 def test_conservative_lopinf_recovers_spd_stiffness():
@@ -91,7 +91,7 @@ def test_conservative_lopinf_recovers_spd_stiffness():
     A = rng.standard_normal((5, 5))
     K_true = A @ A.T + np.eye(5)
     Qh, _, ddQh = _oscillator_data(K_true)
-    ops = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    ops = lo.core.infer_mechanical(Qh, None, ddQh, damping=False)
     assert np.linalg.norm(ops.K - K_true) / np.linalg.norm(K_true) < 1e-6
     assert np.array_equal(ops.K, ops.K.T)
     assert ops.certificate["min_eig_K"] >= 1e-8
@@ -102,9 +102,9 @@ def test_standard_opinf_is_unconstrained():
     Qh = rng.standard_normal((3, 400))
     K_ns = np.array([[2.0, 1.0, 0.0], [-1.0, 1.0, 0.5], [0.0, 0.3, -0.5]])  # neither sym nor PD
     ddQh = -K_ns @ Qh
-    op = lo.infer_opinf(Qh, None, ddQh, damping=False)
+    op = lo.core.infer_opinf(Qh, None, ddQh, damping=False)
     assert np.allclose(op.K, K_ns, atol=1e-10)
-    lop = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    lop = lo.core.infer_mechanical(Qh, None, ddQh, damping=False)
     assert np.array_equal(lop.K, lop.K.T) and lop.certificate["min_eig_K"] >= 1e-8
     assert lop.certificate["objective"] >= op.certificate["objective"]
 
@@ -112,12 +112,12 @@ def test_standard_opinf_is_unconstrained():
 def test_rom_conserves_its_energy_and_is_second_order():
     K = np.diag([1.0, 9.0])
     M = np.array([[2.0, 0.3], [0.3, 1.0]])
-    rom = lo.LagrangianROM(K=K, M=M)
+    rom = lo.core.LagrangianROM(K=K, M=M)
     tr = rom.simulate(np.array([1.0, -0.5]), np.array([0.2, 0.0]), 0.01, 10_000)
     e = rom.energy(tr.Qh, tr.Vh)
     assert np.abs(e - e[0]).max() / e[0] < 1e-12
     exact = lambda t: np.cos(np.sqrt(2.0) * t)  # noqa: E731  q'' = -2 q for K=2, M=1
-    one = lo.LagrangianROM(K=[[2.0]])
+    one = lo.core.LagrangianROM(K=[[2.0]])
     errs = [abs(one.simulate([1.0], [0.0], dt, int(round(3 / dt))).Qh[0, -1] - exact(3.0))
             for dt in (0.02, 0.01)]
     assert 3.6 < errs[0] / errs[1] < 4.4
@@ -156,27 +156,27 @@ def test_choose_r_picks_the_smallest_sufficient_dimension():
     phase = rng.uniform(0, 6, r_true)
     Q = P @ (amps[:, None] * np.cos(np.outer(w, t) + phase[:, None]))
     V0 = P @ (-amps * w * np.sin(phase))
-    loose = lo.choose_r(Q, t, [1, 2, 3, 4, 5, 6], 0.1, V0=V0)
-    tight = lo.choose_r(Q, t, [1, 2, 3, 4, 5, 6], 1e-3, V0=V0)
+    loose = lo.core.choose_r(Q, t, [1, 2, 3, 4, 5, 6], 0.1, V0=V0)
+    tight = lo.core.choose_r(Q, t, [1, 2, 3, 4, 5, 6], 1e-3, V0=V0)
     assert loose.r is not None and tight.r is not None and loose.r < tight.r
     assert [s["r"] for s in tight.scores] == list(range(1, tight.r + 1))  # stops at the first hit
     assert all(s["met"] == (s["holdout_error"] <= 1e-3) for s in tight.scores)
-    assert lo.choose_r(Q, t, [1], 1e-12, V0=V0).r is None
+    assert lo.core.choose_r(Q, t, [1], 1e-12, V0=V0).r is None
     with pytest.raises(ValueError, match="holdout"):
-        lo.choose_r(Q, t, [2], 0.1, holdout=1.5)
+        lo.core.choose_r(Q, t, [2], 0.1, holdout=1.5)
 
 
 def test_variational_data_recover_the_midpoint_operator_exactly():
     """On a midpoint-VI trajectory with stiff modes (dt omega ~ 0.5), fitting the discrete
     Euler-Lagrange relation recovers K to rounding; 8th-order differences cannot."""
     K = np.diag([1.0, 400.0, 2500.0])
-    rom = lo.LagrangianROM(K=K)
+    rom = lo.core.LagrangianROM(K=K)
     dt = 0.01
     tr = rom.simulate(np.array([1.0, 0.5, 0.2]), np.array([0.0, 1.0, -2.0]), dt, 3000)
     Qbar, D2 = lo.core.ddt.variational_data(tr.Qh, tr.times)
-    exact = lo.infer_mechanical(Qbar, None, D2, damping=False).K
-    Qh, _, ddQh = lo.derivatives(tr.Qh, tr.times)
-    fd = lo.infer_mechanical(Qh, None, ddQh, damping=False).K
+    exact = lo.core.infer_mechanical(Qbar, None, D2, damping=False).K
+    Qh, _, ddQh = lo.core.derivatives(tr.Qh, tr.times)
+    fd = lo.core.infer_mechanical(Qh, None, ddQh, damping=False).K
     assert np.linalg.norm(exact - K) / np.linalg.norm(K) < 1e-8
     assert np.linalg.norm(fd - K) / np.linalg.norm(K) > 1e-3
 
@@ -185,7 +185,8 @@ def test_newmark_data_recover_the_discrete_operators_exactly():
     """On a Newmark trajectory of a forced, damped system whose time step does not resolve the
     fastest mode (dt omega_max = 2), the three-point Newmark data give back K, C, B to round-off
     and finite differences do not."""
-    from dolfinx_lopinf import LagrangianROM, derivatives, infer_mechanical, newmark_data
+    from dolfinx_lopinf.core import LagrangianROM, derivatives, infer_mechanical
+    from dolfinx_lopinf.core.ddt import newmark_data
 
     rng = np.random.default_rng(3)
     r, dt = 4, 1e-3

@@ -402,7 +402,7 @@ def test_the_simulate_contract_and_named_bad_inputs():
     with pytest.raises(InputError, match="unforced"):
         pl.PolynomialROM(pot).simulate(np.zeros(r), np.zeros(r), 0.01, 5, inputs=np.ones((1, 5)))
     free = rom.simulate(0.1 * np.ones(r), np.zeros(r), 0.01, 20, every=5)  # inputs=None: free
-    assert isinstance(free, lo.Trajectory) and free.Qh.shape == (r, 5) and free.stable
+    assert isinstance(free, lo.core.Trajectory) and free.Qh.shape == (r, 5) and free.stable
     grid = rom.simulate(np.zeros(r), np.zeros(r), 0.01, 20, inputs=np.ones((1, 21)))
     mid = rom.simulate(np.zeros(r), np.zeros(r), 0.01, 20, inputs=lambda t: np.ones(1))
     np.testing.assert_allclose(grid.Qh, mid.Qh, rtol=1e-12, atol=1e-15)

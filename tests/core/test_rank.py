@@ -29,15 +29,15 @@ def _near_dependent_data(delta, seed=0):
 def _fit(Q, ddQ, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
-        return lo.infer_mechanical(Q, None, ddQ, damping=False, **kw)
+        return lo.core.infer_mechanical(Q, None, ddQ, damping=False, **kw)
 
 
 def test_exact_rank_deficiency_warns_and_strict_raises():
     Q, ddQ = _near_dependent_data(0.0)
     with pytest.raises(lo.errors.RankDeficientDataError, match=r"rank 4 < 6.*lower r"):
-        lo.infer_mechanical(Q, None, ddQ, damping=False, strict=True)
+        lo.core.infer_mechanical(Q, None, ddQ, damping=False, strict=True)
     with pytest.warns(lo.errors.IllConditionedDataWarning, match=r"rank 4 < 6.*ridge"):
-        ops = lo.infer_mechanical(Q, None, ddQ, damping=False)
+        ops = lo.core.infer_mechanical(Q, None, ddQ, damping=False)
     # sound: symmetric, >= eps I, and it fits the dynamics the data do determine
     assert np.array_equal(ops.K, ops.K.T) and ops.certificate["min_eig_K"] >= 1e-8
     assert ops.certificate["relative_residual"] < 1e-3
@@ -48,7 +48,7 @@ def test_zero_row_names_the_row_and_the_remedy():
     Q, ddQ = _near_dependent_data(1e-3)
     Q[5] = 0.0
     with pytest.raises(lo.errors.RankDeficientDataError, match=r"Qh\[5\].*lower r"):
-        lo.infer_mechanical(Q, None, ddQ, damping=False)
+        lo.core.infer_mechanical(Q, None, ddQ, damping=False)
 
 
 @pytest.mark.parametrize("delta", [1e-16, 1e-14, 1e-12])
@@ -64,7 +64,7 @@ def test_fit_does_not_depend_on_rounding_at_the_rank_edge(delta):
         Ks.append(_fit(Q * noise, ddQ * noise).K)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
-            Ko.append(lo.infer_opinf(Q * noise, None, ddQ * noise, damping=False).K)
+            Ko.append(lo.core.infer_opinf(Q * noise, None, ddQ * noise, damping=False).K)
     for K in (Ks, Ko):
         spread = max(np.abs(k - K[0]).max() for k in K[1:]) / np.abs(K[0]).max()
         assert spread < 1e-6, spread
@@ -96,6 +96,6 @@ def test_data_in_extreme_units_are_fitted():
 def test_static_data_are_refused_with_a_reason():
     Q, _ = _near_dependent_data(1e-1)
     with pytest.raises(lo.errors.InputError, match="identically zero"):
-        lo.infer_mechanical(Q, None, np.zeros_like(Q), damping=False)
+        lo.core.infer_mechanical(Q, None, np.zeros_like(Q), damping=False)
     with pytest.raises(lo.errors.InputError, match="identically zero"):
-        lo.infer_wave(Q, np.zeros_like(Q), np.zeros_like(Q))
+        lo.core.infer_wave(Q, np.zeros_like(Q), np.zeros_like(Q))

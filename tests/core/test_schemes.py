@@ -57,7 +57,7 @@ def test_rom_step_and_relations_are_the_scheme(scheme):
     rng = np.random.default_rng(1)
     q0, v0 = rng.standard_normal(4), rng.standard_normal(4)
     ref = _reference_run(scheme, M, C, K, B, dt, n, q0, v0, _load)
-    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme=scheme)
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme=scheme)
     tr = rom.simulate(q0, v0, dt, n, inputs=_load, backend="numpy")
     assert np.abs(tr.Qh - ref).max() <= 1e-12 * np.abs(ref).max()
     # the displacement-only relation holds on the samples, the loads taken where they act
@@ -74,7 +74,7 @@ def test_rom_step_and_relations_are_the_scheme(scheme):
 def test_midpoint_relation_and_step():
     M, C, K, B = _system(2)
     dt, n = 0.01, 200
-    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme=S.Midpoint())
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme=S.Midpoint())
     tr = rom.simulate(np.ones(4), np.zeros(4), dt, n, inputs=_load)
     t = dt * np.arange(n + 1)
     t_load = np.union1d(t, t[:-1] + 0.5 * dt)
@@ -102,7 +102,7 @@ def test_identification_recovers_parameters_and_operators(truth):
     for name in ("alpha_m", "alpha_f", "beta", "gamma"):
         assert abs(getattr(found, name) - getattr(truth, name)) < 1e-6, (found, report["why"])
     snaps = lo.Snapshots(t, Q, U=U, input_times=t_load)
-    model = lo.fit(snaps, 4, basis=lo.Basis(np.eye(4), {}, {}), mass="identity", damping=True)
+    model = lo.fit(snaps, 4, basis=lo.core.Basis(np.eye(4), {}, {}), mass="identity", damping=True)
     for name in ("alpha_m", "alpha_f", "beta", "gamma"):  # identified in POD coordinates
         assert abs(getattr(model.scheme, name) - getattr(truth, name)) < 1e-6
     for fitted, true in ((model.rom.K, K), (model.rom.C, C), (model.rom.B, B)):
@@ -158,7 +158,7 @@ def test_undamped_data_give_a_conservative_energy_conserving_rom():
     Q = _reference_run(S.Newmark(), M, 0 * C, K, B, dt, n, np.ones(4), np.zeros(4), load)
     t = dt * np.arange(n + 1)
     snaps = lo.Snapshots(t, Q, U=np.array([load(s) for s in t]).T)
-    model = lo.fit(snaps, 4, basis=lo.Basis(np.eye(4), {}, {}), mass="identity")
+    model = lo.fit(snaps, 4, basis=lo.core.Basis(np.eye(4), {}, {}), mass="identity")
     assert model.report["damping"] is False and model.rom.C is None, model.report["why"]
     assert model.scheme == "newmark"
     free = model.predict(10 * n, q0=Q[:, -1], v0=np.ones(4))  # inputs=None: the free response
@@ -168,12 +168,12 @@ def test_undamped_data_give_a_conservative_energy_conserving_rom():
 
 def test_a_forced_model_predicts_its_free_response_without_inputs():
     M, C, K, B = _system(7, m=1)
-    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
     free = rom.simulate(np.ones(4), np.zeros(4), 0.01, 50)
     zero = rom.simulate(np.ones(4), np.zeros(4), 0.01, 50, inputs=lambda t: np.zeros(1))
     np.testing.assert_array_equal(free.Qh, zero.Qh)
     with pytest.raises(InputError, match="unforced"):
-        lo.LagrangianROM(K=K, scheme="newmark").simulate(np.ones(4), np.zeros(4), 0.01, 5,
+        lo.core.LagrangianROM(K=K, scheme="newmark").simulate(np.ones(4), np.zeros(4), 0.01, 5,
                                                         inputs=lambda t: np.ones(1))
 
 
@@ -182,12 +182,12 @@ def test_one_simulate_contract_for_linear_and_wave_roms():
     ends the run with NaN after it with on_failure="stop"."""
     K = -np.diag([1.0, 4.0])
     V = np.eye(2)
-    wave = lo.WaveROM(K=K, V=V, g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z))
-    lin = lo.LagrangianROM(K=-K, scheme="newmark")
+    wave = lo.core.WaveROM(K=K, V=V, g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z))
+    lin = lo.core.LagrangianROM(K=-K, scheme="newmark")
     for rom in (wave, lin):
         tr = rom.simulate(np.array([0.1, 0.0]), np.zeros(2), 0.01, 20, inputs=None, every=2,
                           backend="numpy", on_failure="raise")
-        assert isinstance(tr, lo.Trajectory) and tr.Qh.shape == (2, 11) and tr.stable
+        assert isinstance(tr, lo.core.Trajectory) and tr.Qh.shape == (2, 11) and tr.stable
     with pytest.raises(InputError, match="no input operator"):
         wave.simulate(np.zeros(2), np.zeros(2), 0.01, 5, inputs=lambda t: np.ones(1))
     with pytest.raises(InputError, match="on_failure"):

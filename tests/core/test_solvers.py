@@ -249,22 +249,22 @@ def _forced_data(r=4):
 def test_infer_mechanical_rejects_unknown_solvers_naming_the_valid_ones():
     data = _forced_data()
     with pytest.raises(InputError, match="unknown solver 'sdpt3'.*'auto', 'lyapunov', 'admm', 'cvxpy'"):
-        lo.infer_mechanical(*data, solver="sdpt3")
+        lo.core.infer_mechanical(*data, solver="sdpt3")
     with pytest.raises(InputError, match="solve\\(problem\\) method, not a int"):
-        lo.infer_mechanical(*data, solver=3)
+        lo.core.infer_mechanical(*data, solver=3)
     with pytest.raises(InputError, match="conservative, unforced"):
-        lo.infer_mechanical(*data, solver="lyapunov")
+        lo.core.infer_mechanical(*data, solver="lyapunov")
 
 
 def test_infer_mechanical_takes_a_strategy_object_and_admm_is_a_real_path():
     data = _forced_data()
-    auto = lo.infer_mechanical(*data)
+    auto = lo.core.infer_mechanical(*data)
     # Auto is PSDBlocks, which tries the active blocks alone only from r = ELIMINATE_FROM_R on
     assert data[0].shape[0] < lsq.blocks.ELIMINATE_FROM_R
-    obj = lo.infer_mechanical(*data, solver=lsq.PSDBlocks(eliminate=False))
+    obj = lo.core.infer_mechanical(*data, solver=lsq.PSDBlocks(eliminate=False))
     assert np.array_equal(obj.K, auto.K) and np.array_equal(obj.B, auto.B)
     assert {k for k in auto.certificate if k != "seconds"} == {k for k in obj.certificate if k != "seconds"}
-    admm = lo.infer_mechanical(*data, solver="admm")
+    admm = lo.core.infer_mechanical(*data, solver="admm")
     assert admm.certificate["method"] == "admm+face" and admm.certificate["solver"] == "admm"
     assert admm.certificate["status"] == "optimal" and admm.certificate["duality_gap"] <= 1e-8
     assert admm.certificate["objective"] == pytest.approx(auto.certificate["objective"], rel=1e-7)
@@ -275,7 +275,7 @@ def test_infer_mechanical_takes_a_strategy_object_and_admm_is_a_real_path():
             return theta, lsq.Certificate("clip", False, 1)
 
     with pytest.warns(lo.errors.SolverWarning, match="clip stopped after 1 iterations"):
-        ops = lo.infer_mechanical(*data, solver=Clip())
+        ops = lo.core.infer_mechanical(*data, solver=Clip())
     assert ops.certificate["solver"] == "clip" and ops.certificate["status"] == "not converged"
 
 
@@ -283,10 +283,10 @@ def test_conservative_admm_skips_the_lyapunov_shortcut():
     rng = np.random.default_rng(2)
     Qh = rng.standard_normal((3, 600))
     ddQh = -np.diag([3.0, 1.0, 2.0]) @ Qh + 0.01 * rng.standard_normal((3, 600))
-    auto = lo.infer_mechanical(Qh, None, ddQh, damping=False)
+    auto = lo.core.infer_mechanical(Qh, None, ddQh, damping=False)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        admm = lo.infer_mechanical(Qh, None, ddQh, damping=False, solver="admm")
+        admm = lo.core.infer_mechanical(Qh, None, ddQh, damping=False, solver="admm")
     assert auto.certificate["solver"] == "lyapunov" and admm.certificate["solver"] == "admm"
     assert np.allclose(admm.K, auto.K, rtol=1e-6)
 
@@ -297,7 +297,7 @@ def test_both_active_benchmark_data_is_certified_with_both_blocks_on_the_constra
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ops = lo.infer_mechanical(*benchmark.active_data(kind, 6, 3000), eps=1e-8)
+        ops = lo.core.infer_mechanical(*benchmark.active_data(kind, 6, 3000), eps=1e-8)
     cert = ops.certificate
     assert cert["solver"] == "ipm" and cert["status"] == "optimal"
     assert cert["duality_gap"] <= 1e-8
@@ -346,10 +346,10 @@ def test_interior_point_certifies_held_out_data_where_it_stalls(kind, r, n, seed
     data = benchmark.active_data(kind, r, n, seed)
     with warnings.catch_warnings():
         warnings.simplefilter("error", lo.errors.SolverWarning)
-        ops = lo.infer_mechanical(*data, eps=EPS)
+        ops = lo.core.infer_mechanical(*data, eps=EPS)
     c = ops.certificate
     assert c["solver"] == "ipm" and c["converged"] and c["duality_gap"] <= 1e-8
-    ref = lo.infer_mechanical(*data, eps=EPS, solver=lsq.PSDBlocks(method="admm"))
+    ref = lo.core.infer_mechanical(*data, eps=EPS, solver=lsq.PSDBlocks(method="admm"))
     assert ops.certificate["objective"] <= ref.certificate["objective"] * (1 + 1e-8)
 
 
@@ -378,7 +378,7 @@ def test_a_stalled_interior_point_hands_over_to_the_crossover_early(backend):
     stalled = 0
     for k in range(4):
         d = [a * (1 + 1e-14 * rng.standard_normal(a.shape)) if k else a for a in data]
-        c = lo.infer_mechanical(*d, eps=EPS, solver=lsq.Auto(backend=backend)).certificate
+        c = lo.core.infer_mechanical(*d, eps=EPS, solver=lsq.Auto(backend=backend)).certificate
         assert c["solver"] == "ipm" and c["converged"] and c["duality_gap"] <= 1e-8
         windows = _stall_windows(c["ipm"]["trace"])
         assert all(i == len(c["ipm"]["trace"]) for i in windows), windows
@@ -404,7 +404,7 @@ def _exact_rigid_data(r, seed):
     def u(t):
         return np.array([np.sin(f * t).sum()])
 
-    tr = lo.LagrangianROM(K=0.5 * (K + K.T), C=0.5 * (C + C.T), B=B, lagrangian=False).simulate(
+    tr = lo.core.LagrangianROM(K=0.5 * (K + K.T), C=0.5 * (C + C.T), B=B, lagrangian=False).simulate(
         rng.standard_normal(r), rng.standard_normal(r), 2e-3, 3007, inputs=u)
     Qh, dQh, ddQh = derivatives(tr.Qh, tr.times)
     return (Qh, dQh, ddQh, np.column_stack([u(t) for t in tr.times])[:, 4:-4]), w2
@@ -419,7 +419,7 @@ def test_data_fitted_almost_exactly_are_certified_not_crashed(r, seed):
     data, w2 = _exact_rigid_data(r, seed)
     with warnings.catch_warnings():
         warnings.simplefilter("error", lo.errors.SolverWarning)
-        ops = lo.infer_mechanical(*data, eps=EPS)
+        ops = lo.core.infer_mechanical(*data, eps=EPS)
     c = ops.certificate
     assert c["converged"] and c["duality_gap"] <= 1e-8
     w = np.linalg.eigvalsh(ops.K)
@@ -484,7 +484,7 @@ def test_rank_deficient_two_block_fits_are_certified_with_the_ridge_raised(seed,
     data = _rank_deficient(16, seed, exact)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
-        ops = lo.infer_mechanical(*data, eps=EPS)
+        ops = lo.core.infer_mechanical(*data, eps=EPS)
     c = ops.certificate
     assert c["solver"] == "ipm" and c["converged"] and c["duality_gap"] <= 1e-8
     assert c["ridge_raised_to"] in lsq.problem.RIDGE_STEPS
@@ -503,7 +503,7 @@ def test_barrier_answer_on_a_resolved_problem_says_so():
     data = _rank_deficient(20, 0, True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        c = lo.infer_mechanical(*data, eps=EPS).certificate
+        c = lo.core.infer_mechanical(*data, eps=EPS).certificate
     assert c["ridge_raised_to"] in lsq.problem.RIDGE_STEPS and c["gap_floor"] > 0
 
 
@@ -579,12 +579,12 @@ def test_every_fit_reports_one_certificate_vocabulary(solver):
     args = (Qh, None, ddQh) if solver == "lyapunov" else (Qh, dQh, ddQh, U)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        cert = lo.infer_mechanical(*args, solver=solver, damping=solver != "lyapunov").certificate
+        cert = lo.core.infer_mechanical(*args, solver=solver, damping=solver != "lyapunov").certificate
     for key in ("duality_gap", "certified", "solver", "iterations", "seconds"):
         assert key in cert, (solver, key)
     assert cert["certified"] == (cert["duality_gap"] <= 1e-8 and cert["status"] in ("optimal",)
                                  or (solver == "lyapunov" and cert["duality_gap"] == 0.0)), cert
-    for other in (lo.infer_opinf(Qh, dQh, ddQh, U).certificate,):
+    for other in (lo.core.infer_opinf(Qh, dQh, ddQh, U).certificate,):
         assert other["certified"] and other["duality_gap"] == 0.0
 
 
@@ -592,8 +592,8 @@ def test_strict_raises_instead_of_returning_an_uncertified_fit():
     Qh, dQh, ddQh, U = _forced(6)
     stopped_early = lsq.PSDBlocks(method="admm", max_iter=2)
     with pytest.warns(lo.errors.SolverWarning):
-        cert = lo.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early).certificate
+        cert = lo.core.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early).certificate
     assert not cert["certified"]
     with pytest.raises(lo.errors.SolverFailedError, match="not certified"):
-        lo.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early, strict=True)
-    assert lo.infer_mechanical(Qh, dQh, ddQh, U, strict=True).certificate["certified"]
+        lo.core.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early, strict=True)
+    assert lo.core.infer_mechanical(Qh, dQh, ddQh, U, strict=True).certificate["certified"]

@@ -71,7 +71,7 @@ def case(name, fn):
 
 def agree_cases():
     system, V, q0, v0 = string()
-    sm = lo.StateMap.from_coordinates(V)
+    sm = lo.fem.StateMap.from_coordinates(V)
     n = len(sm.order)
     run = lambda **kw: lo.run(system, q0, v0, kw.pop("dt", DT), kw.pop("t_end", 0.02),  # noqa: E731
                               progress=False, **kw)
@@ -79,9 +79,9 @@ def agree_cases():
     case("run_t_end", lambda: run(t_end=0.04 if other else 0.02))
     case("run_record_every", lambda: run(record_every=2 if other else 1))
     case("run_t_end_not_whole_on_one_rank", lambda: run(t_end=0.0205 if other else 0.02))
-    case("run_state_map", lambda: run(state_map=lo.StateMap(sm.order, sm.scale * (2.0 if other else 1.0))))
+    case("run_state_map", lambda: run(state_map=lo.fem.StateMap(sm.order, sm.scale * (2.0 if other else 1.0))))
 
-    it = lo.MidpointIntegrator(system, DT)
+    it = lo.fem.MidpointIntegrator(system, DT)
     it.initialize(q0, v0)
     case("loop_steps", lambda: lo.run(it, 10 if other else 7))
     E = point_output_matrix(V, [[0.5, 0, 0]])
@@ -89,7 +89,7 @@ def agree_cases():
     case("loop_bad_sink_one_rank", lambda: lo.run(it, 3, sinks=[5] if other else []))
     case("step_input_one_rank", lambda: it.step(1.0 if other else None))
     case("initialize_nan_one_rank", lambda: it.initialize(np.where(other, np.nan, q0), v0))
-    case("integrator_dt", lambda: lo.MidpointIntegrator(system, 2e-3 if other else 1e-3))
+    case("integrator_dt", lambda: lo.fem.MidpointIntegrator(system, 2e-3 if other else 1e-3))
     it.close()
     case("loop_closed", lambda: lo.run(it, 3))
 
@@ -101,15 +101,15 @@ def agree_cases():
 
     x = np.linspace(0.0, 1.0, n)
     B = np.column_stack([np.sin(np.pi * x), np.sin(2 * np.pi * x)])
-    with lo.MidpointIntegrator(system, 1e-4) as m:
+    with lo.fem.MidpointIntegrator(system, 1e-4) as m:
         G = probes.mass_gram(m, B, sm)
     B = B @ np.linalg.inv(np.linalg.cholesky(G)).T
     Bnan = B.copy()
     Bnan[3, 0] = np.nan
     Q, Vel = np.ones((2, 3)), np.zeros((2, 3))
-    case("probe_nan_V_one_rank", lambda: lo.probe(system, Bnan if other else B, sm, Q, Vel,
+    case("probe_nan_V_one_rank", lambda: lo.fem.probe(system, Bnan if other else B, sm, Q, Vel,
                                                   step_size=1e-4, levels=2, step_tol=None))
-    case("probe_Q_differs", lambda: lo.probe(system, B, sm, Q * (2.0 if other else 1.0), Vel,
+    case("probe_Q_differs", lambda: lo.fem.probe(system, B, sm, Q * (2.0 if other else 1.0), Vel,
                                              step_size=1e-4, levels=2, step_tol=None))
     case("points_differ", lambda: point_output_matrix(V, [[0.7 if other else 0.5, 0, 0]]))
     case("points_nan_one_rank", lambda: point_output_matrix(V, [[np.nan if other else 0.5, 0, 0]]))
@@ -159,7 +159,7 @@ def fit_case():
 
 def sink_case(on_every_rank: bool):
     system, V, q0, v0 = string()
-    it = lo.MidpointIntegrator(system, DT)
+    it = lo.fem.MidpointIntegrator(system, DT)
     it.initialize(q0, v0)
 
     def sink(state):

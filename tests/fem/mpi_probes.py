@@ -17,7 +17,7 @@ snaps, _ = lo.run(cant.system, *cant.initial_state(), scene.DT, 0.2, output_matr
                   state_map=cant.state_map, progress=False, record_velocity=False, energy_every=0)
 Q = comm.bcast(snaps.Q if comm.rank == 0 else None, root=0)
 B = np.linalg.svd(Q, full_matrices=False)[0][:, :3]
-integ = lo.MidpointIntegrator(cant.system, 1e-6)
+integ = lo.fem.MidpointIntegrator(cant.system, 1e-6)
 G = probes.mass_gram(integ, B, cant.state_map)
 integ.close()
 V = B @ np.linalg.inv(np.linalg.cholesky(G)).T

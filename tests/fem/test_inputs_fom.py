@@ -55,7 +55,7 @@ def no_steps(monkeypatch):
     """Any step taken is a failure: the error must come before the run."""
     def step(self):
         raise AssertionError("a step was taken before the input error")
-    monkeypatch.setattr(lo.MidpointIntegrator, "step", step)
+    monkeypatch.setattr(lo.fem.MidpointIntegrator, "step", step)
 
 
 # -- item 2 / 13: a bc on another space ------------------------------------------------------
@@ -130,7 +130,7 @@ def test_initial_state_violating_the_bcs_is_corrected_with_a_warning():
     ({"checkpoint_every": 0, "checkpoint": "CKPT"}, "checkpoint_every must be >= 1, got 0"),
     ({"checkpoint": "MISSING/run"}, "directory .*MISSING does not exist"),
     ({"output_matrix": np.ones((1, 3))}, r"output_matrix must be a real \(p, n_local\)"),
-    ({"state_map": lo.StateMap(np.arange(3), np.ones(3))}, "the space has 33 dofs"),
+    ({"state_map": lo.fem.StateMap(np.arange(3), np.ones(3))}, "the space has 33 dofs"),
 ])
 def test_run_refuses_bad_arguments_before_the_first_step(no_steps, tmp_path, kw, match):
     V = _p1()
@@ -154,7 +154,7 @@ def test_lagrangian_without_kinetic_energy_is_refused_at_construction():
     system = lo.LagrangianSystem((0.5 * qt[0] ** 2 - 0.5 * ufl.inner(ufl.grad(q), ufl.grad(q)))
                                  * ufl.dx, q, qt)
     with pytest.raises(InputError, match="mass matrix .* diagonal at 33 free dofs"):
-        lo.MidpointIntegrator(system, DT, prefix="nokin_")
+        lo.fem.MidpointIntegrator(system, DT, prefix="nokin_")
 
 
 def test_initial_state_on_another_space_is_refused():
@@ -300,18 +300,18 @@ kw = dict(dt=scene.DT, t_end=0.003, record_every=10, checkpoint_every=100, state
           progress=False, checkpoint=sys.argv[1])
 class Killed(Exception):
     pass
-step, n = lo.MidpointIntegrator.step, [0]
+step, n = lo.fem.MidpointIntegrator.step, [0]
 def killer(self):
     n[0] += 1
     if n[0] > 150:
         raise Killed
     step(self)
-lo.MidpointIntegrator.step = killer
+lo.fem.MidpointIntegrator.step = killer
 try:
     lo.run(b.system, q0, v0, **kw)
 except Killed:
     pass
-lo.MidpointIntegrator.step = step
+lo.fem.MidpointIntegrator.step = step
 try:
     lo.run(scene.build(40, comm, ei=1.01 * scene.EI).system, q0, v0, **kw)
 except CheckpointMismatchError as exc:
@@ -362,4 +362,4 @@ def test_streaming_pod_refuses_a_function_of_another_mesh(tmp_path):
 
 def test_galerkin_rom_refuses_a_basis_of_the_wrong_size(beam):
     with pytest.raises(InputError, match=r"basis must be a finite \(n, r\) array with n = 400"):
-        lo.galerkin_rom(beam.system, np.eye(399)[:, :4], beam.state_map)
+        lo.fem.galerkin_rom(beam.system, np.eye(399)[:, :4], beam.state_map)

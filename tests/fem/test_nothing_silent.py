@@ -62,14 +62,14 @@ def test_write_vtx_refuses_a_hermite_space(beam, tmp_path):
     with pytest.raises(InputError, match="Hermite space, which VTX cannot show"):
         lo.write_vtx(tmp_path / "beam.bp", beam.system.V, S, [0.0], state_map=beam.state_map)
     assert os.listdir(tmp_path) == []
-    f = lo.states_to_function(beam.system.V, S[:, 0], beam.state_map)  # a Function is fine
+    f = lo.fem.states_to_function(beam.system.V, S[:, 0], beam.state_map)  # a Function is fine
     assert np.isclose(f.x.array[beam.value_dofs], 1.0).all() and not f.x.array[beam.slope_dofs].any()
 
 
 def test_run_refuses_an_integrator_never_initialised():
     """run(MidpointIntegrator(system, dt), 5) stepped from q = p = 0 and recorded zeros."""
     system, V, q0, v0 = _string()
-    with lo.MidpointIntegrator(system, DT) as it:
+    with lo.fem.MidpointIntegrator(system, DT) as it:
         with pytest.raises(InputError, match="never initialised"):
             lo.run(it, 5)
         with pytest.raises(InputError, match="never initialised"):
@@ -255,7 +255,7 @@ def test_write_vtx_on_a_really_full_disk_raises_instead_of_aborting(tmp_path):
 
 def test_sinks_that_are_not_sinks_are_named():
     system, V, q0, v0 = _string()
-    with lo.MidpointIntegrator(system, DT) as it:
+    with lo.fem.MidpointIntegrator(system, DT) as it:
         it.initialize(q0, v0)
         with pytest.raises(InputError, match=r"sinks\[1\] = 5 is neither a Sink .* nor a callable"):
             lo.run(it, 3, sinks=[lambda s: None, 5])
@@ -270,7 +270,7 @@ def test_sinks_that_are_not_sinks_are_named():
 
 def test_a_closed_integrator_says_so():
     system, V, q0, v0 = _string()
-    it = lo.MidpointIntegrator(system, DT)
+    it = lo.fem.MidpointIntegrator(system, DT)
     it.initialize(q0, v0)
     it.close()
     for call in (lambda: lo.run(it, 3), it.step, it.velocity, it.energy, lambda: it.initialize(q0, v0),

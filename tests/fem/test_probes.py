@@ -125,7 +125,7 @@ def test_a_callable_black_box_is_checked(setup):
         probes.probe(lambda h: object(), V, cant.state_map, Qh[:, :2], Vh[:, :2], step_size=1e-6)
     # a MidpointIntegrator factory works like the system itself
     Q, Vel = Qh[:, :2], Vh[:, :2]
-    a = probes.probe(lambda h: lo.MidpointIntegrator(cant.system, h), V, cant.state_map, Q, Vel,
+    a = probes.probe(lambda h: lo.fem.MidpointIntegrator(cant.system, h), V, cant.state_map, Q, Vel,
                      step_size=4e-6, levels=3)
     b = probes.probe(cant.system, V, cant.state_map, Q, Vel, step_size=4e-6, levels=3)
     assert np.abs(a.A - b.A).max() <= 1e-12 * np.abs(b.A).max()

@@ -81,7 +81,7 @@ def test_wave_rom_conserves_energy_and_ecsw_keeps_structure():
     V = np.linalg.qr(rng.standard_normal((n, r)))[0]
     A = rng.standard_normal((r, r))
     K = -(A @ A.T) - np.eye(r)
-    rom = lo.WaveROM(K=K, V=V, g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z))
+    rom = lo.core.WaveROM(K=K, V=V, g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z))
     tr = rom.simulate(np.zeros(r), 2 * rng.standard_normal(r), 0.01, 3000)
     e = rom.energy(tr.Qh, tr.Vh)
     # symplectic midpoint on a non-quadratic L: small bounded oscillation, no drift
@@ -90,7 +90,7 @@ def test_wave_rom_conserves_energy_and_ecsw_keeps_structure():
     assert err[1500:].max() < 2 * err[:1500].max()
     sample = hyper.ecsw(V, tr.Qh[:, ::30], np.sin, tol=1e-3)
     assert 0 < len(sample.rows) < n / 2 and np.all(sample.weights > 0) and sample.residual <= 1e-3
-    hr = lo.WaveROM(K=K, V=V[sample.rows], g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z),
+    hr = lo.core.WaveROM(K=K, V=V[sample.rows], g=np.sin, dg=np.cos, U=lambda z: 1 - np.cos(z),
                     weights=sample.weights)
     tr2 = hr.simulate(np.zeros(r), tr.Vh[:, 0], 0.01, 3000)
     e2 = hr.energy(tr2.Qh, tr2.Vh)

@@ -94,7 +94,7 @@ def test_membrane_time_step_below_cfl():
         n = loop.SIZES[size]["cells"]
         domain = dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, n, n, dolfinx.mesh.CellType.triangle)
         V = dolfinx.fem.functionspace(domain, ("Lagrange", 1))
-        ops = operators.fe_operators(loop, V, lo.StateMap.from_coordinates(V))
+        ops = operators.fe_operators(loop, V, lo.fem.StateMap.from_coordinates(V))
         f = ops["free"]
         m = np.diag(ops["M"])[f]
         assert np.allclose(ops["M"][np.ix_(f, f)], np.diag(m))  # lumped

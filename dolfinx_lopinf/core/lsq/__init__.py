@@ -24,7 +24,7 @@ first (:func:`eliminate_free`):
   ADMM + face.
 * :class:`Barrier` - a log-barrier interior point method with a duality-gap certificate
   (slow; the last resort).
-* :class:`Auto` - the default of :func:`~dolfinx_lopinf.infer_mechanical`.
+* :class:`Auto` - the default of :func:`~dolfinx_lopinf.core.infer_mechanical`.
 
 The functions of earlier versions (:func:`solve_psd_blocks`, :func:`solve_psd_single`,
 :func:`solve_ipm`) run these strategies and return ``(Theta, certificate dict)``.

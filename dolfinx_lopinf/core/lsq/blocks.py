@@ -1,5 +1,5 @@
 """Several symmetric blocks >= eps I, all strategies composed (:class:`PSDBlocks`), and the
-default dispatch of :func:`dolfinx_lopinf.infer_mechanical` (:class:`Auto`)."""
+default dispatch of :func:`dolfinx_lopinf.core.infer_mechanical` (:class:`Auto`)."""
 
 from __future__ import annotations
 
@@ -104,7 +104,7 @@ def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, **
 
 
 class Auto(Strategy):
-    """The default of :func:`dolfinx_lopinf.infer_mechanical`.
+    """The default of :func:`dolfinx_lopinf.core.infer_mechanical`.
 
     Two blocks (K, C): :class:`PSDBlocks`, and the log barrier (:class:`Barrier`) if that is
     not certified. Where H is singular to double precision or the interior point fails,

@@ -380,7 +380,7 @@ class Strategy:
     The free columns are minimised out exactly first (:meth:`Problem.without_free`);
     subclasses implement ``solve_blocks`` for a problem of symmetric blocks alone. Any object
     with such a ``solve`` method can be passed as ``solver=`` to
-    :func:`dolfinx_lopinf.infer_mechanical`.
+    :func:`dolfinx_lopinf.core.infer_mechanical`.
     """
 
     def solve(self, problem: Problem):
