@@ -20,7 +20,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
-from . import errors
+from . import errors, parametric
 from .core import ddt, schemes
 from .core.basis import Basis, pod
 from .core.fit import ReducedModel, fit
@@ -62,7 +62,7 @@ def __getattr__(name):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-__all__ = ["ddt", "errors", "schemes", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
+__all__ = ["ddt", "errors", "parametric", "schemes", "fit", "ReducedModel", "Basis", "Choice", "LagrangianROM", "MechanicalOperators", "Snapshots", "Trajectory",
            "derivatives", "newmark_data", "variational_data", "energy_error", "infer_mechanical", "infer_opinf", "infer_output",
            "choose_r", "infer_wave", "WaveROM", "load_rom", "pod", "relative_error", "save_rom",
            "fit_polynomial", "PolynomialROM", "point_data", *_LAZY]

@@ -11,8 +11,8 @@ and :mod:`dolfinx_lopinf.studies.peers` for the conventions):
   (the same reduced space as the L-OpInf rows: 2r first-order states);
 * ``kind="affine"``: ``opinf.models.ParametricContinuousModel`` with an
   ``AffineLinearOperator`` whose coefficient functions are the monomials our UFL split found
-  for K and C (plus 1: A(mu) = [[0, I], [-K(mu), -C(mu)]] needs it) - the same affine
-  information L-OpInf gets - and an ``InputOperator`` (``AffineInputOperator`` when B depends
+  for K and C (plus 1: A(mu) = [[0, I], [-K(mu), -C(mu)]] needs it), each divided by its
+  largest training value - the same affine information L-OpInf gets - and an ``InputOperator`` (``AffineInputOperator`` when B depends
   on mu); ``kind="interpolated"``: ``opinf.models.InterpContinuousModel`` (elementwise cubic
   spline in 1-D, opinf's default), the trajectories of one parameter stacked at its node;
 * the reduced time derivatives: ``UniformFiniteDifferencer(times, "ord6")`` per trajectory;
@@ -41,10 +41,17 @@ from .peers import DEFAULT_CANDIDATES, _exact_model_class, _opinf, _serial_blas
 KINDS = ("affine", "interpolated")
 
 
-def _theta_fns(structure: AffineStructure, terms):
+def _theta_fns(structure: AffineStructure, terms, mus):
+    """The coefficient functions theta_t(mu) / max_train |theta_t|: nondimensional, as a
+    careful user writes them (E ~ 1e5 beside 1 would make opinf's one L2 regulariser weigh
+    the terms 1e10 apart)."""
+    def raw(t, mu):
+        return float(np.prod([np.atleast_1d(mu)[structure.parameters.index(k)] for k in t])) \
+            if t else 1.0
+
     def make(t):
-        return lambda mu: float(np.prod([np.atleast_1d(mu)[structure.parameters.index(k)]
-                                         for k in t])) if t else 1.0
+        scale = max(abs(raw(t, mu)) for mu in mus) or 1.0
+        return lambda mu: raw(t, mu) / scale
     return [make(t) for t in terms]
 
 
@@ -118,14 +125,15 @@ def opinf_parametric(data, basis: Basis, *, kind: str = "affine",
     if kind == "affine":
         a_terms = sorted({()} | set(structure.stiffness) | set(structure.damping),
                          key=lambda t: (len(t), t))
-        ops = [opinf.operators.AffineLinearOperator(_theta_fns(structure, a_terms),
+        mus = [t[0] for t in trajs]
+        ops = [opinf.operators.AffineLinearOperator(_theta_fns(structure, a_terms, mus),
                                                     nterms=len(a_terms))]
         if forced:
             if structure.inputs == ((),):
                 ops.append(opinf.operators.InputOperator())
             else:
                 ops.append(opinf.operators.AffineInputOperator(
-                    _theta_fns(structure, structure.inputs), nterms=len(structure.inputs)))
+                    _theta_fns(structure, structure.inputs, mus), nterms=len(structure.inputs)))
         model = opinf.models.ParametricContinuousModel(ops, solver=opinf.lstsq.L2Solver(1.0))
         params = [t[0] for t in trajs]
         states, lhs = X, ddts

@@ -357,7 +357,7 @@ def scalar_fields(path, grid, frames: list[dict], *, titles=None, warp: float | 
     """2D scalar fields (membrane displacement) as coloured, optionally warped surfaces: one
     row per frame, one column per label (e.g. FOM | L-OpInf | |error|). A label starting
     with '|' gets its own colour range (an error), the others share one (symmetric).
-    ``overlay``: (k, 2) points of a closed outline drawn on every panel (an inclusion)."""
+    ``overlay``: (k, 2) points of an outline drawn on the flat panels (an inclusion)."""
     pv = _pyvista()
     labels = list(frames[0])
     plotter = pv.Plotter(shape=(len(frames), len(labels)), off_screen=True,
@@ -378,10 +378,9 @@ def scalar_fields(path, grid, frames: list[dict], *, titles=None, warp: float | 
                              scalar_bar_args={"title": "error" if err else "q", "vertical": True,
                                               "position_x": 0.8, "height": 0.6, "fmt": "%.1e",
                                               "label_font_size": 10, "title_font_size": 11})
-            if overlay is not None:
-                z = 0.0 if (warp and not err) else 1e-3
+            if overlay is not None and not (warp and not err):  # on the flat panels
                 plotter.add_mesh(pv.lines_from_points(np.column_stack(
-                    [overlay[:, 0], overlay[:, 1], np.full(len(overlay), z)])), color="k",
+                    [overlay[:, 0], overlay[:, 1], np.full(len(overlay), 1e-3)])), color="w",
                     line_width=2)
             text = label if titles is None else f"{label}  {titles[i]}"
             plotter.add_text(text, font_size=8, position="upper_left")
