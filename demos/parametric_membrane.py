@@ -78,7 +78,8 @@ def main(argv=None):
             if f["method"] == "lopinf":
                 c = f["report"].get("certificate", {})
                 print(f"{f['study']} r = {f['r']}: fit {1e3 * f['fit_seconds']:.1f} ms"
-                      + (f" (best of 5: {1e3 * f['fit_seconds_min']:.1f} ms)" if "fit_seconds_min" in f
+                      + (f" (best of 5: {1e3 * f['fit_seconds_min']:.1f} ms wall, "
+                         f"{1e3 * f['fit_cpu_seconds_min']:.1f} ms CPU)" if "fit_seconds_min" in f
                          else "")
                       + (f", duality gap {c.get('duality_gap')}, damping {f['report'].get('damping')}"
                          if c else "") + f"; {f['report'].get('stable_for', c.get('stable_for', ''))}")

@@ -151,17 +151,32 @@ def test_intrusive_at_r_n_steps_the_fom(membrane, scheme):
                        atol=1e-12 * snap.energy.max())
 
 
-def test_lopinf_at_r_n_gives_the_projected_terms_back(membrane):
+@pytest.mark.parametrize("scheme", ["newmark", lo.schemes.GeneralizedAlpha(rho_inf=0.8)])
+def test_lopinf_at_r_n_gives_the_projected_terms_back(membrane, scheme):
+    """The data relation of the FOM's own scheme (Newmark's three-point, generalised-alpha's
+    four-point with its loads at t_{n+1-alpha_f}) holds exactly: the fit is the projection."""
     psys = membrane.psys
     basis = _complete_basis(psys)
     dt, n = 0.02, 120
-    data = [(mu, param_fom.simulate(psys, mu, dt, n, inputs=u)[0])
+    data = [(mu, param_fom.simulate(psys, mu, dt, n, inputs=u, scheme=scheme)[0])
             for mu in (0.5, 2.0, 3.5) for u in membrane2d.train_loads()]
+    assert data[0][1].scheme == scheme
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
         model = lo.parametric.fit_affine(data, psys.structure, basis=basis, damping="structure")
-    ref = psys.intrusive(basis, "newmark", dt)
+    assert model.scheme == scheme
+    ref = psys.intrusive(basis, scheme, dt)
     for op in ("stiffness", "inputs"):
         for A, B in zip(model.terms[op], ref.terms[op]):
             assert np.abs(A - B).max() <= 1e-5 * np.abs(B).max(), op
     assert model.report["certificate"]["converged"]
+
+
+@pytest.mark.mpi
+def test_parametric_fom_two_ranks_equals_serial(serial_and_parallel):
+    from pathlib import Path
+
+    a, b = serial_and_parallel(Path(__file__).with_name("mpi_param_fom.py"))
+    for key in ("Q", "E", "U", "K", "B"):
+        assert np.abs(a[key] - b[key]).max() <= 1e-10 * np.abs(a[key]).max(), key
+    assert a["split"] < 1e-13 and b["split"] < 1e-13
