@@ -95,7 +95,10 @@ def _figures(out, name, scene, res, cfg):
                               [r for r in res["rows"] if r["split"] == "test"], name=symbol,
                               train_values=cfg[name]["train"],
                               title=f"membrane, {name}: unseen parameters and an unseen input "
-                                    "(shaded: training range)")
+                                    "(shaded: training range)",
+                              labels=None if name == "contrast" else
+                              {"lopinf": "L-OpInf, SPD-interpolated (log-Euclidean)",
+                               "opinf": "opinf interpolated (peer)"})
     import dolfinx.plot
     import pyvista
 

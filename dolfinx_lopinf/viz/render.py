@@ -311,10 +311,11 @@ PARAM_STYLES = {"lopinf": ("parametric L-OpInf", "C0", "o"),
 
 
 def error_vs_parameter(path, rows: list[dict], *, index: int = 0, name: str = "mu",
-                       train_values=None, title: str = "", select=None) -> Path:
+                       train_values=None, title: str = "", select=None, labels=None) -> Path:
     """Test error against one parameter (``index`` of mu), one panel per r, one line per
     method (:data:`PARAM_STYLES`); the training values marked, the training range shaded.
-    ``select(row)``: which rows (e.g. those on one line through a 2-D parameter box)."""
+    ``select(row)``: which rows (e.g. those on one line through a 2-D parameter box);
+    ``labels``: method -> legend text, replacing :data:`PARAM_STYLES`' labels."""
     plt = _pyplot()
     rows = [r for r in rows if (select is None or select(r))]
     r_values = sorted({r["r"] for r in rows})
@@ -326,6 +327,9 @@ def error_vs_parameter(path, rows: list[dict], *, index: int = 0, name: str = "m
                          key=lambda r: r["mu"][index])
             if not sel:
                 continue
+            label = (labels or {}).get(method, label)
+            if any("note" in r for r in sel):
+                label = "intrusive Galerkin, assembled at each mu"
             x = [r["mu"][index] for r in sel]
             y = [min(r["test_error"], 1e3) for r in sel]
             ls = ":" if method == "projection" else "-"
