@@ -29,7 +29,7 @@ import itertools
 
 import numpy as np
 
-from ._dolfinx import MPI, PETSc, dolfinx, ufl
+from ._dolfinx import PETSc, dolfinx, ufl
 from ..core.basis import Basis
 from ..core.parametric import OPERATORS, SYMBOLS, AffineStructure, ParametricModel, label
 from ..errors import InputError, InputTypeError, NonAffineParameterError
@@ -351,4 +351,4 @@ class ParametricSystem:
                 for op in OPERATORS for t in getattr(self.structure, op)]
 
 
-__all__ = ["ParametricSystem", "split_form", "MPI"]
+__all__ = ["ParametricSystem", "split_form"]

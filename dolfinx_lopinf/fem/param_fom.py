@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from ._dolfinx import MPI, PETSc, dolfinx
+from ._dolfinx import MPI, dolfinx
 from ..core import schemes
 from ..core.snapshots import Snapshots
 from ..errors import InputError
@@ -164,4 +164,4 @@ def simulate(psys, mu, dt: float, n_steps: int, *, inputs=None, scheme="newmark"
     return snap, seconds
 
 
-__all__ = ["simulate", "PETSc"]
+__all__ = ["simulate"]
