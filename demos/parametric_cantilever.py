@@ -88,6 +88,9 @@ def _figures(out, scene, res, train, cfg):
                               train_values=tr[:, 1], select=lambda r: r["mu"][0] == CENTRE[0],
                               title=f"cantilever, unseen designs at E = {CENTRE[0]:.3g} Pa and an "
                                     "unseen tip load (shaded: training range)")
+    if scene.V.mesh.comm.size > 1:  # the fields live on the ranks' pieces of the mesh
+        print("(fields rendered in serial runs only)")
+        return
     import dolfinx.plot
     import pyvista
 

@@ -99,6 +99,9 @@ def _figures(out, name, scene, res, cfg):
                               labels=None if name == "contrast" else
                               {"lopinf": "L-OpInf, SPD-interpolated (log-Euclidean)",
                                "opinf": "opinf interpolated (peer)"})
+    if scene.V.mesh.comm.size > 1:  # the fields live on the ranks' pieces of the mesh
+        print("(fields rendered in serial runs only)")
+        return
     import dolfinx.plot
     import pyvista
 

@@ -42,12 +42,16 @@ from . import harness
 
 
 def run_foms(psys, mus, loads, dt, n_steps, scheme="newmark"):
-    """[(mu, Snapshots)] for every mu and load (rank 0; other ranks get None snapshots) and
-    the total FOM seconds."""
+    """[(mu, Snapshots)] for every mu and load, on every rank (the FOM runs on all ranks, its
+    gathered snapshots are broadcast: the reduced fits then run alike everywhere), and the
+    total FOM seconds."""
+    comm = psys.V.mesh.comm
     out, seconds = [], 0.0
     for mu in mus:
         for load in loads:
             snap, sec = param_fom.simulate(psys, mu, dt, n_steps, inputs=load, scheme=scheme)
+            if comm.size > 1:
+                snap = comm.bcast(snap, root=0)
             out.append((np.atleast_1d(np.asarray(mu, float)), snap))
             seconds += sec
     return out, seconds
