@@ -53,7 +53,7 @@ def _load(k):
 
 
 def _trajectory(K, C, B, load, n=300, dt=DT, q0=None):
-    rom = lo.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme="newmark")
     q0 = np.zeros(K.shape[0]) if q0 is None else q0
     tr = rom.simulate(q0, np.zeros(K.shape[0]), dt, n, inputs=load)
     U = np.column_stack([load(t) for t in tr.times])
@@ -222,7 +222,7 @@ def test_a_parameter_dependent_mass_is_learned_as_a_psd_block(truth):
     data = []
     for mu in (0.5, 1.0, 2.0, 3.0):
         for k in range(2):
-            rom = lo.LagrangianROM(K=truth["K[1]"], M=np.eye(N) + mu * M1, B=truth["B[1]"],
+            rom = lo.core.LagrangianROM(K=truth["K[1]"], M=np.eye(N) + mu * M1, B=truth["B[1]"],
                                    scheme="newmark")
             tr = rom.simulate(np.zeros(N), np.zeros(N), DT, 300, inputs=_load(k))
             U = np.column_stack([_load(k)(t) for t in tr.times])
@@ -327,7 +327,7 @@ K0, K1, B = np.diag([1.0, 4.0]), np.diag([0.5, 1.0]), np.array([[1.0], [0.3]])
 s = lo.parametric.AffineStructure(("mu",), stiffness=["1", "mu"], inputs=["1"])
 data = []
 for mu in (0.5, 1.0, 2.0):
-    rom = lo.LagrangianROM(K=K0 + mu * K1, B=B, scheme="newmark")
+    rom = lo.core.LagrangianROM(K=K0 + mu * K1, B=B, scheme="newmark")
     tr = rom.simulate(np.zeros(2), np.zeros(2), 0.05, 200, inputs=lambda t: np.array([np.sin(t)]))
     U = np.sin(tr.times)[None, :]
     data.append((mu, lo.Snapshots(tr.times, tr.Qh, U=U, scheme="newmark")))
