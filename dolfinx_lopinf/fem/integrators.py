@@ -30,6 +30,7 @@ one) and are removed once the solver has read them, as DOLFINx's ``LinearProblem
 from __future__ import annotations
 
 import itertools
+import time
 import warnings
 from typing import Protocol, runtime_checkable
 
@@ -39,9 +40,14 @@ from ._dolfinx import MPI, PETSc, dolfinx, ufl
 from ..errors import InputCorrectedWarning, InputError, StepFailedError
 from .agreement import RTOL, agree, check
 from .lagrangian import LagrangianSystem, _on_space
+from . import linsolve
+from .linsolve import _pop_options, _push_options  # noqa: F401 - re-exported
+from .linsolve import direct_ksp as _direct_solver
 
 fem = dolfinx.fem
 fpetsc = dolfinx.fem.petsc
+#: let PETSc compare the sparsity of M and K (same pattern: the fast entry-wise sum)
+_UNKNOWN_PATTERN = PETSc.Mat.Structure.UNKNOWN_NONZERO_PATTERN
 
 
 _PREFIX_COUNTER = itertools.count()
@@ -50,23 +56,6 @@ _PREFIX_COUNTER = itertools.count()
 def _unique_prefix(scheme: str) -> str:
     """A PETSc options prefix no other integrator of this process uses."""
     return f"lopinf_{scheme}_{next(_PREFIX_COUNTER)}_"
-
-
-def _push_options(prefix: str, options: dict) -> list[str]:
-    """Write ``options`` under ``prefix`` into the global database; return the keys written
-    (for :func:`_pop_options`)."""
-    opts = PETSc.Options()
-    for key, value in options.items():
-        opts[f"{prefix}{key}"] = value
-    return [f"{prefix}{key}" for key in options]
-
-
-def _pop_options(keys) -> None:
-    """Remove keys written by :func:`_push_options` (those already gone are skipped)."""
-    opts = PETSc.Options()
-    for key in keys:
-        if opts.hasName(key):
-            opts.delValue(key)
 
 
 def _destroy(*objects) -> None:
@@ -143,34 +132,6 @@ class _Closing:
         return problem
 
 
-def _direct_solver(A, comm, prefix: str, options: dict | None, *, spd: bool = False):
-    """KSP with a direct factorisation: MUMPS when PETSc has it, PETSc's own otherwise.
-    ``spd``: A is symmetric positive definite - Cholesky (LDL^T, half the memory of LU).
-    The options are removed from the global database once the factorisation has read them."""
-    ksp = PETSc.KSP().create(comm)
-    if spd:
-        A.setOption(PETSc.Mat.Option.SPD, True)
-    ksp.setOperators(A)
-    ksp.setOptionsPrefix(prefix)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("cholesky" if spd else "lu")
-    pc.setFactorSolverType("mumps")
-    keys = _push_options(prefix, options or {})
-    try:
-        ksp.setFromOptions()
-        try:
-            ksp.setUp()
-        except PETSc.Error:  # pragma: no cover - a PETSc built without MUMPS
-            if comm.size > 1:
-                raise
-            pc.setFactorSolverType("petsc")
-            ksp.setUp()
-    finally:
-        _pop_options(keys)
-    return ksp
-
-
 def _check_dt(dt, what="dt"):
     try:
         ok = bool(np.isfinite(float(dt)) and float(dt) > 0)
@@ -231,6 +192,11 @@ class MidpointIntegrator(_Closing):
         dt: time step.
         petsc_options: extra options for the linear solver (linear case, prefix
             ``<prefix>``) or for SNES (nonlinear case).
+        solver: the linear case's solver, a name of
+            :data:`dolfinx_lopinf.fem.linsolve.SOLVERS` (``"auto"``: MUMPS LU of the step
+            Jacobian; an iterative one works on its negative, M/dt + dt/4 K, which is SPD,
+            warm-started from the extrapolated displacement). Newton (SNES) steps keep their
+            direct solve: only ``"auto"`` or ``"direct"`` there (KSP/PC via petsc_options).
         prefix: PETSc options prefix (default: ``lopinf_midpoint_<n>_``, unique per
             integrator). The options are removed from the global database once read.
 
@@ -242,12 +208,26 @@ class MidpointIntegrator(_Closing):
     scheme = "midpoint"
 
     def __init__(self, system: LagrangianSystem, dt: float, *, petsc_options: dict | None = None,
-                 prefix: str | None = None):
+                 prefix: str | None = None, solver: str = "auto"):
         if not isinstance(system, LagrangianSystem):
             raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
         V, comm = system.V, system.V.mesh.comm
-        dt = check(comm, "MidpointIntegrator", lambda: (_check_dt(dt), _check_options(petsc_options))[0])
-        agree(comm, "MidpointIntegrator", None, dt=dt, petsc_options=petsc_options)
+
+        def local():
+            name = linsolve.resolve(solver)
+            if name != "direct" and not system.is_quadratic:
+                raise InputError(f"solver={solver!r}: the nonlinear (Newton, PETSc SNES) midpoint step "
+                                 "keeps its direct solve; choose 'auto' or 'direct' and set the "
+                                 "Newton step's KSP/PC through petsc_options")
+            if name != "direct":
+                linsolve.check_petsc_options(petsc_options)
+            return _check_dt(dt), _check_options(petsc_options), name
+
+        dt, _, solver = check(comm, "MidpointIntegrator", local)
+        agree(comm, "MidpointIntegrator", None, dt=dt, petsc_options=petsc_options, solver=solver)
+        self._solver_name = solver
+        self.solver = None
+        self._history = []
         prefix = _unique_prefix(self.scheme) if prefix is None else str(prefix)
         self.system, self.dt, self.prefix = system, float(dt), prefix
         self._comm = comm
@@ -284,12 +264,23 @@ class MidpointIntegrator(_Closing):
 
     # -- set-up ---------------------------------------------------------------------------
     def _setup_linear(self, options):
-        comm = self.system.V.mesh.comm
-        self._A1 = fpetsc.assemble_matrix(self._jacobian, bcs=self._bcs)
-        self._A1.assemble()
-        self._ksp = _direct_solver(self._A1, comm, self.prefix, options)
-        self._rhs = fpetsc.create_vector(self.system.V)
-        self._dq = fpetsc.create_vector(self.system.V)
+        V, comm = self.system.V, self.system.V.mesh.comm
+        if self._solver_name == "direct":
+            self._A1 = fpetsc.assemble_matrix(self._jacobian, bcs=self._bcs)
+            self._A1.assemble()
+            self._ksp = _direct_solver(self._A1, comm, self.prefix, options)
+        else:  # -A1 = M/dt + dt/4 K (+ damping) is SPD: bc rows -1 before the sign flip
+            self._A1 = fpetsc.assemble_matrix(self._jacobian, bcs=self._bcs, diag=-1.0)
+            self._A1.assemble()
+            self._A1.scale(-1.0)
+            self.solver = linsolve.StepSolver(self._A1, comm, self._solver_name, self.prefix,
+                                              options, V=V)
+            self._ksp = self.solver.ksp
+            self._history = [fpetsc.create_vector(V) for _ in range(3)]
+        self._n_history = 0
+        self._rhs = fpetsc.create_vector(V)
+        self._dq = fpetsc.create_vector(V)
+        self._dq.set(0.0)
 
     def _setup_snes(self, options):
         V, comm = self.system.V, self.system.V.mesh.comm
@@ -329,6 +320,19 @@ class MidpointIntegrator(_Closing):
         if len(self._bc_dofs):
             with vec.localForm() as loc:
                 loc.array[self._bc_dofs] = 0.0
+
+    def _warm_start(self, dq):
+        """dq = q_e - q_k with q_e extrapolated from the last three displacements (returns
+        True); until three are known, dq keeps the previous increment (returns False)."""
+        q = self.q.x.petsc_vec
+        q.copy(self._history[0])
+        self._history.append(self._history.pop(0))
+        self._n_history = min(self._n_history + 1, 3)
+        if self._n_history < 3:
+            return False
+        linsolve.extrapolate(self._history, dq)
+        dq.axpy(-1.0, q)
+        return True
 
     def _set_time(self, t_mid):
         if self.system.time is not None:
@@ -392,6 +396,7 @@ class MidpointIntegrator(_Closing):
         self.q.x.array[:] = sysm.q.x.array
         self._assemble(self._momentum_at, self.p)
         self._zero_bc_rows(self.p)
+        self._n_history = 0
         self.t = float(t0)
         self.steps_taken = 0
         self.initialized = True
@@ -409,7 +414,9 @@ class MidpointIntegrator(_Closing):
         saved_q, saved_p, saved_t = self.q.x.array.copy(), self.p.copy(), self.t
         self.q.x.array[:] = q0
         p0.copy(self.p)
+        self._n_history = 0  # the warm start's history is not this state's
         self._step_agreed()
+        self._n_history = 0
         out = self.q.x.array.copy(), self.p.copy()
         self.q.x.array[:] = saved_q
         saved_p.copy(self.p)
@@ -447,12 +454,18 @@ class MidpointIntegrator(_Closing):
             rhs, dq = self._rhs, self._dq
             self._assemble(self._residual, rhs)  # R(q0, q0) = D1 L_d(q0, q0) + f_d^-
             rhs.axpy(1.0, self.p)
-            rhs.scale(-1.0)
-            fpetsc.set_bc(rhs, self._bcs)
-            self._ksp.solve(rhs, dq)
-            if self._ksp.getConvergedReason() <= 0:
-                raise StepFailed(f"linear solve failed at step {self.steps_taken + 1}: "
-                                 f"KSP reason {self._ksp.getConvergedReason()}")
+            if self.solver is None:  # A1 dq = -(R + p)
+                rhs.scale(-1.0)
+                fpetsc.set_bc(rhs, self._bcs)
+                self._ksp.solve(rhs, dq)
+                reason = self._ksp.getConvergedReason()
+                failure = f"KSP reason {reason}"
+            else:  # (-A1) dq = R + p, warm-started
+                fpetsc.set_bc(rhs, self._bcs)
+                reason = self.solver.solve(rhs, dq, extrapolated=self._warm_start(dq))
+                failure = self.solver.describe_failure(reason) if reason <= 0 else ""
+            if reason <= 0:
+                raise StepFailed(f"linear solve failed at step {self.steps_taken + 1}: {failure}")
             f.q1.x.petsc_vec.axpy(1.0, dq)
             f.q1.x.scatter_forward()
         else:
@@ -510,6 +523,11 @@ class MidpointIntegrator(_Closing):
         self.closed = True
         _pop_options(self._pending_options)
         self._pending_options = []
+        if self.solver is not None:
+            self.solver.close()
+            self._ksp = self.solver = None
+        _destroy(*self._history)
+        self._history = []
         _destroy(self._ksp, getattr(self, "_A1", None), getattr(self, "_rhs", None),
                  getattr(self, "_dq", None), self._snes, getattr(self, "_J", None),
                  getattr(self, "_b", None), getattr(self, "_x", None),
@@ -538,19 +556,28 @@ class NewmarkIntegrator(_Closing):
         dt: time step.
         rayleigh: (alpha, beta).
         input_forms: linear forms b_j(v), one per input channel.
-        solver: ``"direct"`` (MUMPS LU of A) or ``"cg"`` (CG + GAMG with ``near_nullspace``).
+        solver: a name of :data:`dolfinx_lopinf.fem.linsolve.SOLVERS`: ``"auto"`` (default,
+            :func:`~dolfinx_lopinf.fem.linsolve.resolve`), ``"direct"`` (MUMPS Cholesky of A,
+            factored once) or an iterative one (``"cg"`` = ``"cg+gamg"`` with
+            ``near_nullspace``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``), warm-started
+            from the displacement extrapolated over the last three steps and stopped at a
+            tolerance tied to the truncation error (see :mod:`~dolfinx_lopinf.fem.linsolve`).
         near_nullspace: optional PETSc NullSpace (rigid body modes) for GAMG.
         prefix: PETSc options prefix (default ``lopinf_newmark_<n>_``, unique); the options
             are removed from the global database once the solver is set up.
+        petsc_options: options of the solver under the prefix (e.g. ``{"ksp_rtol": 1e-6}``).
 
     An :class:`Integrator`: :meth:`initialize` (from rest), then :meth:`step` with the input
     values at the new time; :meth:`close` (or ``with``) destroys the PETSc objects.
+    C is never stored: C v = alpha M v + beta K v (one matrix less in memory); :attr:`C`
+    builds it on request. ``timings`` holds the set-up seconds (assembly, solver set-up),
+    ``solver`` the :class:`~dolfinx_lopinf.fem.linsolve.StepSolver` (its ``stats()``).
     """
 
     scheme = "newmark"
 
     def __init__(self, system: LagrangianSystem, dt: float, *, rayleigh=(0.0, 0.0),
-                 input_forms=(), solver: str = "direct", near_nullspace=None,
+                 input_forms=(), solver: str = "auto", near_nullspace=None,
                  prefix: str | None = None, petsc_options: dict | None = None):
         if not isinstance(system, LagrangianSystem):
             raise InputError(f"system must be a LagrangianSystem, got {type(system).__name__}")
@@ -559,8 +586,7 @@ class NewmarkIntegrator(_Closing):
         def local():
             if not system.is_quadratic:
                 raise InputError("Newmark here is for linear systems (a quadratic Lagrangian)")
-            if solver not in ("direct", "cg"):
-                raise InputError(f"solver must be 'direct' or 'cg', got {solver!r}")
+            name = linsolve.check_solver(solver)
             step = _check_dt(dt)
             try:
                 a, b = (float(c) for c in rayleigh)
@@ -573,10 +599,10 @@ class NewmarkIntegrator(_Closing):
                 if not args or len(args) != 1 or args[0].ufl_function_space() != system.V:
                     raise InputError(f"input_forms[{j}] must be a UFL 1-form whose test function "
                                      "is on the system's space (the space of q)")
-            _check_options(petsc_options)
-            return step, a, b
+            linsolve.check_petsc_options(petsc_options)
+            return step, a, b, name
 
-        dt, alpha, beta = check(comm, "NewmarkIntegrator", local)
+        dt, alpha, beta, solver = check(comm, "NewmarkIntegrator", local)
         agree(comm, "NewmarkIntegrator", None, dt=dt, rayleigh=(alpha, beta), solver=solver,
               input_channels=len(input_forms), petsc_options=petsc_options,
               near_nullspace=near_nullspace is not None)
@@ -587,36 +613,24 @@ class NewmarkIntegrator(_Closing):
         V = system.V
         bcs = list(system.bcs)
         self._bcs = bcs
+        t0 = time.perf_counter()
         M = fpetsc.assemble_matrix(fem.form(system.mass_form), bcs=bcs)
         M.assemble()
         K = fpetsc.assemble_matrix(fem.form(system.stiffness_form), bcs=bcs, diag=0.0)
         K.assemble()
-        C = M.copy()
-        C.scale(alpha)
-        C.axpy(beta, K)
+        # A = M + dt/2 (alpha M + beta K) + dt^2/4 K (PETSc finds out that M and K share
+        # their sparsity - the same space and cells - and adds them entry by entry)
         A = M.copy()
-        A.axpy(0.5 * self.dt, C)
-        A.axpy(0.25 * self.dt**2, K)
-        self.M, self.K, self.C, self.A = M, K, C, A
-        if solver == "direct":
-            # A = M + dt/2 C + dt^2/4 K is SPD: Cholesky
-            self._ksp = _direct_solver(A, comm, prefix, petsc_options, spd=True)
-        else:
-            if near_nullspace is not None:
-                A.setNearNullSpace(near_nullspace)
-            ksp = PETSc.KSP().create(comm)
-            ksp.setOperators(A)
-            ksp.setOptionsPrefix(prefix)
-            ksp.setType("cg")
-            ksp.getPC().setType("gamg")
-            ksp.setTolerances(rtol=1e-10, atol=1e-30, max_it=2000)
-            keys = _push_options(prefix, petsc_options or {})
-            try:
-                ksp.setFromOptions()
-                ksp.setUp()  # GAMG reads its level options here: before they are removed
-            finally:
-                _pop_options(keys)
-            self._ksp = ksp
+        A.scale(1.0 + 0.5 * self.dt * alpha)
+        A.axpy(0.5 * self.dt * beta + 0.25 * self.dt**2, K, structure=_UNKNOWN_PATTERN)
+        self.M, self.K, self.A = M, K, A
+        self.rayleigh = (alpha, beta)
+        self._C = None
+        self.timings = {"assemble_seconds": time.perf_counter() - t0}
+        self.solver = linsolve.StepSolver(A, comm, solver, prefix, petsc_options, V=V,
+                                          near_nullspace=near_nullspace)
+        self._ksp = self.solver.ksp
+        self.timings["solver_setup_seconds"] = self.solver.setup_seconds
         self.inputs = []
         for form in input_forms:
             b = fpetsc.assemble_vector(fem.form(form))
@@ -624,8 +638,34 @@ class NewmarkIntegrator(_Closing):
             fpetsc.set_bc(b, bcs)
             self.inputs.append(b)
         self.q, self.v, self.a = (fem.Function(V) for _ in range(3))
-        self._qs, self._vs, self._rhs, self._tmp = (fpetsc.create_vector(V) for _ in range(4))
+        self._qs, self._vs, self._rhs, self._tmp, self._w = (fpetsc.create_vector(V) for _ in range(5))
+        # the last displacements, oldest first (the iterative solvers' warm start)
+        self._history = [fpetsc.create_vector(V) for _ in range(3)] if self.solver.iterative else []
+        self._n_history = 0
         self.t = 0.0
+
+    @property
+    def C(self) -> "PETSc.Mat":
+        """The Rayleigh damping matrix alpha M + beta K, assembled on first request (the time
+        loop never needs it; destroyed by :meth:`close`)."""
+        self._check_open("C")
+        if self._C is None:
+            alpha, beta = self.rayleigh
+            C = self.M.copy()
+            C.scale(alpha)
+            C.axpy(beta, self.K, structure=_UNKNOWN_PATTERN)
+            self._C = C
+        return self._C
+
+    def _damping_times(self, v, out, work):
+        """out = C v = alpha M v + beta K v (``work``: a scratch vector)."""
+        alpha, beta = self.rayleigh
+        self.K.mult(v, out)
+        out.scale(beta)
+        if alpha:
+            self.M.mult(v, work)
+            out.axpy(alpha, work)
+        return out
 
     def _values(self, u, what: str):
         """(problem, u as (m,) floats): the input values of one time, checked on this rank."""
@@ -697,6 +737,7 @@ class NewmarkIntegrator(_Closing):
                                      f"(reason {ksp.getConvergedReason()})")
                 self.a.x.scatter_forward()
                 ksp.destroy()
+        self._n_history = 0
         self.t = 0.0
         self.initialized = True
 
@@ -721,15 +762,30 @@ class NewmarkIntegrator(_Closing):
         v.copy(vs)
         vs.axpy(0.5 * dt, a)
         self._load(values, rhs)
-        self.C.mult(vs, tmp)
+        # rhs -= C v* + K q* = K (q* + beta v*) + alpha M v*: one product with K, one with M
+        alpha, beta = self.rayleigh
+        qs.copy(self._w)
+        self._w.axpy(beta, vs)
+        self.K.mult(self._w, tmp)
         rhs.axpy(-1.0, tmp)
-        self.K.mult(qs, tmp)
-        rhs.axpy(-1.0, tmp)
+        if alpha:
+            self.M.mult(vs, tmp)
+            rhs.axpy(-alpha, tmp)
         fpetsc.set_bc(rhs, self._bcs)
-        self._ksp.solve(rhs, a)
-        if self._ksp.getConvergedReason() <= 0:
-            raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: KSP reason "
-                             f"{self._ksp.getConvergedReason()}")
+        if self._history:
+            # warm start: a1 = 4/dt^2 (q_e - q*), q_e = 3 q_k - 3 q_{k-1} + q_{k-2}; until three
+            # displacements are known, the previous acceleration (Newmark's own predictor)
+            q.copy(self._history[0])  # the oldest slot becomes the newest
+            self._history.append(self._history.pop(0))
+            self._n_history = min(self._n_history + 1, 3)
+            if self._n_history == 3:
+                linsolve.extrapolate(self._history, a)
+                a.axpy(-1.0, qs)
+                a.scale(4.0 / dt**2)
+        reason = self.solver.solve(rhs, a, extrapolated=self._n_history == 3)
+        if reason <= 0:
+            raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: "
+                             f"{self.solver.describe_failure(reason)}")
         qs.copy(q)
         q.axpy(0.25 * dt**2, a)
         vs.copy(v)
@@ -760,11 +816,13 @@ class NewmarkIntegrator(_Closing):
     def close(self) -> None:
         """Destroy the PETSc objects (matrices, solver, work and input vectors)."""
         self.closed = True
-        _destroy(self._ksp, self.M, self.K, self.C, self.A, self._qs, self._vs, self._rhs,
-                 self._tmp, *self.inputs)
-        self._ksp = self.M = self.K = self.C = self.A = None
-        self._qs = self._vs = self._rhs = self._tmp = None
-        self.inputs = []
+        if self.solver is not None:
+            self.solver.close()
+        _destroy(self.M, self.K, self._C, self.A, self._qs, self._vs, self._rhs, self._tmp,
+                 self._w, *self.inputs, *self._history)
+        self._ksp = self.solver = self.M = self.K = self._C = self.A = None
+        self._qs = self._vs = self._rhs = self._tmp = self._w = None
+        self.inputs, self._history = [], []
 
 
 def rigid_body_modes(V):
