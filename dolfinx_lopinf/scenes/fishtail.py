@@ -23,6 +23,7 @@ Output: the lateral (x) displacement of the rear tip of the beam, (0, 0, 0.21) m
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,25 +81,35 @@ class Fishtail:
 SIZES = dict(geometry.SIZES)
 
 
-def mesh(lc: float, comm=MPI.COMM_WORLD):
-    """Mesh the geometry of :mod:`.fishtail_geometry` with element size lc (gmsh on rank 0)."""
+def mesh(lc: float, comm=MPI.COMM_WORLD, *, timings: dict | None = None):
+    """Mesh the geometry of :mod:`.fishtail_geometry` with element size lc (gmsh on rank 0).
+    ``timings``: a dict that receives the seconds of meshing (``gmsh_seconds``, rank 0;
+    the other ranks wait) and of distributing (``distribute_seconds``: the dolfinx mesh
+    from the gmsh model, partitioned over the ranks)."""
     import gmsh
 
+    t0 = time.perf_counter()
     if comm.rank == 0:
         gmsh.initialize()
         geometry.build(lc)
+    comm.Barrier()
+    t1 = time.perf_counter()
     from dolfinx.io import gmsh as gmshio
 
     data = gmshio.model_to_mesh(gmsh.model if comm.rank == 0 else None, comm, 0, gdim=3)
     if comm.rank == 0:
         gmsh.finalize()
+    if timings is not None:
+        timings.update(gmsh_seconds=t1 - t0, distribute_seconds=time.perf_counter() - t1)
     return data.mesh, data.cell_tags, data.facet_tags, geometry.TAGS
 
 
 def build(lc: float = 0.007, comm=MPI.COMM_WORLD, *, degree: int = 2,
-          hull_density: float | str = "paper") -> Fishtail:
+          hull_density: float | str = "paper", timings: dict | None = None) -> Fishtail:
     """The fishtail on a mesh of element size lc; ``hull_density`` in kg/m^3 or a key of
-    :data:`HULL_DENSITIES`."""
+    :data:`HULL_DENSITIES`. ``timings``: a dict that receives the seconds of the set-up
+    phases (:func:`mesh`'s, then ``forms_seconds``: spaces, materials, the Lagrangian's forms
+    and the bc, and ``output_seconds``: the point output matrix)."""
     if isinstance(hull_density, str):
         if hull_density not in HULL_DENSITIES:
             raise ValueError(f"hull_density must be a number or one of {sorted(HULL_DENSITIES)}, "
@@ -107,7 +118,8 @@ def build(lc: float = 0.007, comm=MPI.COMM_WORLD, *, degree: int = 2,
     if not (np.isfinite(hull_density) and hull_density > 0):
         raise ValueError(f"hull_density must be a positive number, got {hull_density}")
     hull = dict(HULL, rho=float(hull_density))
-    msh, cell_tags, facet_tags, tags = mesh(lc, comm)
+    msh, cell_tags, facet_tags, tags = mesh(lc, comm, timings=timings)
+    t0 = time.perf_counter()
     V = dolfinx.fem.functionspace(msh, ("Lagrange", degree, (3,)))
     Q0 = dolfinx.fem.functionspace(msh, ("DG", 0))
     lam, mu, rho = (dolfinx.fem.Function(Q0) for _ in range(3))
@@ -135,17 +147,23 @@ def build(lc: float = 0.007, comm=MPI.COMM_WORLD, *, degree: int = 2,
     v = ufl.TestFunction(V)
     input_forms = [-ufl.inner(n, v) * ds(tags["chamber_left"]),
                    -ufl.inner(n, v) * ds(tags["chamber_right"])]
+    t1 = time.perf_counter()
     E = point_output_matrix(V, np.array([POI]), component=0)
+    if timings is not None:
+        timings.update(forms_seconds=t1 - t0, output_seconds=time.perf_counter() - t1)
     return Fishtail(system, input_forms, E, cell_tags, facet_tags)
 
 
-def integrator(tail: Fishtail, dt: float = DT, *, solver: str = "direct") -> NewmarkIntegrator:
+def integrator(tail: Fishtail, dt: float = DT, *, solver: str = "auto",
+               petsc_options: dict | None = None) -> NewmarkIntegrator:
     """The fishtail's Newmark integrator: Rayleigh damping, the two chamber inputs; ``solver``
-    ``"direct"`` (MUMPS) or ``"cg"`` (CG + GAMG with the rigid-body near-nullspace)."""
+    a name of :data:`dolfinx_lopinf.fem.linsolve.SOLVERS` (``"auto"``: MUMPS; GAMG gets the
+    rigid-body near-nullspace)."""
     V = tail.system.V
+    gamg = isinstance(solver, str) and solver.strip().lower() in ("cg", "cg+gamg")
     return NewmarkIntegrator(tail.system, dt, rayleigh=RAYLEIGH, input_forms=tail.input_forms,
-                             solver=solver,
-                             near_nullspace=rigid_body_modes(V) if solver == "cg" else None)
+                             solver=solver, petsc_options=petsc_options,
+                             near_nullspace=rigid_body_modes(V) if gamg else None)
 
 
 def simulate(tail: Fishtail, nm: NewmarkIntegrator, u, t_end: float, *, sinks=(),

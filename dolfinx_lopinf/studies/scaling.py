@@ -1,0 +1,381 @@
+"""How the fishtail FOM's cost grows with the mesh: set-up phases, time per step, memory, ROM error.
+
+    python -m dolfinx_lopinf.studies.scaling [--sizes 100k,200k,400k] [--ranks 1,2]
+        [--solvers auto] [--steps 200] [--out results/scaling] [--max-gb 18]
+
+For every (size, ranks, solver) the driver starts one worker,
+``mpiexec -n <ranks> python -m dolfinx_lopinf.studies.scaling --case ...``, one at a time - a
+fresh process, so its peak memory is the case's own - and stops a case whose resident memory
+(all its processes) passes ``--max-gb``. Each worker writes ``cases/<size>_<ranks>_<solver>.json``;
+the driver gathers them into ``scaling.json`` and ``scaling.png``.
+
+A worker, on the scene of :mod:`dolfinx_lopinf.scenes.fishtail` (P2, the paper's hull density):
+
+* set-up phase by phase, each timed between barriers (the slowest rank): ``gmsh`` (meshing on
+  rank 0), ``distribute`` (the dolfinx mesh from the gmsh model, partitioned), ``forms``
+  (spaces, materials, Lagrangian forms, bc), ``output`` (the point output matrix), ``assemble``
+  (M, K and A = M + dt/2 C + dt^2/4 K), ``solver`` (the factorisation or the preconditioner's
+  set-up), ``integrator_other`` (input vectors, work vectors);
+* ``steps`` Newmark steps of the sine input from its onset (u(t + 0.1 s): the scene's sine is
+  zero before 0.1 s, which would make an iterative solver's first steps free), with the POI
+  output and the states streamed into the mass-weighted POD (as the demo does); the time per
+  step is the loop's wall time over the steps (slowest rank), beside the rank's CPU seconds
+  (the machine may be shared: wall time then includes waiting for a core);
+* the peak resident memory of every rank (``ru_maxrss``) after each phase;
+* the ROM error: L-OpInf r = 2 (Newmark data relation) fitted to the run's POD coordinates,
+  output error relative to the FOM over the run (a training error: the run is short).
+
+The figure: time per step against dofs on log-log axes per (ranks, solver), with the exponent p
+of the least-squares fit s/step ~ dofs^p; set-up time and peak memory per rank beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+#: element sizes of the fishtail geometry and the P2 dofs they give (measured: the mesh is
+#: unstructured, so other lc give other counts; the worker records the actual count)
+SIZES = {"25k": 0.012, "50k": 0.007, "100k": 0.0047, "200k": 0.0035, "400k": 0.0026,
+         "800k": 0.00195}
+T_ONSET = 0.1  # the scene's sine input starts here
+
+
+def _lc(size: str) -> float:
+    if size in SIZES:
+        return SIZES[size]
+    try:
+        lc = float(size)
+    except ValueError:
+        lc = float("nan")
+    if not (np.isfinite(lc) and 0.0005 <= lc <= 0.05):
+        from ..errors import InputError
+
+        raise InputError(f"size {size!r}: one of {sorted(SIZES)} or an element size in metres "
+                         "between 0.0005 and 0.05")
+    return lc
+
+
+# ----------------------------------------------------------------------------------------------
+# worker (runs under mpiexec)
+# ----------------------------------------------------------------------------------------------
+def _peak_gb(comm) -> list[float]:
+    """Peak resident memory of every rank in GB (ru_maxrss is in KiB on Linux)."""
+    return comm.allgather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9)
+
+
+def run_case(size: str, solver: str, steps: int, out: Path, *, r: int = 2,
+             petsc_options: dict | None = None) -> dict | None:
+    """One case on MPI.COMM_WORLD (collective); rank 0 writes and returns the record."""
+    from ..fem._dolfinx import MPI
+    from ..fem.fom import OutputProbe, run
+    from ..fem.streaming import StreamingPOD
+    from ..scenes import fishtail as scene
+
+    comm = MPI.COMM_WORLD
+    phases, peaks, cpu = {}, {}, {}
+
+    t_all, c_all = time.perf_counter(), time.process_time()
+    timings = {}
+    tail = scene.build(_lc(size), comm, timings=timings)
+    comm.Barrier()
+    for key in ("gmsh", "distribute", "forms", "output"):
+        phases[key] = comm.allreduce(timings[f"{key}_seconds"], op=MPI.MAX)
+    peaks["build"] = _peak_gb(comm)
+    t0, c0 = time.perf_counter(), time.process_time()
+    nm = scene.integrator(tail, scene.DT, solver=solver, petsc_options=petsc_options)
+    comm.Barrier()
+    integrator_s = time.perf_counter() - t0
+    phases["assemble"] = comm.allreduce(nm.timings["assemble_seconds"], op=MPI.MAX)
+    phases["solver"] = comm.allreduce(nm.timings["solver_setup_seconds"], op=MPI.MAX)
+    phases["integrator_other"] = comm.allreduce(
+        integrator_s - nm.timings["assemble_seconds"] - nm.timings["solver_setup_seconds"], op=MPI.MAX)
+    cpu["integrator"] = comm.allreduce(time.process_time() - c0, op=MPI.MAX)
+    peaks["integrator"] = _peak_gb(comm)
+    setup_s = comm.allreduce(time.perf_counter() - t_all, op=MPI.MAX)
+    cpu["setup"] = comm.allreduce(time.process_time() - c_all, op=MPI.MAX)
+    n_dofs = tail.system.V.dofmap.index_map.size_global * tail.system.V.dofmap.index_map_bs
+
+    def u(t):
+        return float(scene.u_sine(t + T_ONSET))
+
+    if comm.rank == 0:
+        (out / "scratch").mkdir(parents=True, exist_ok=True)
+    comm.Barrier()
+    spod = StreamingPOD(tail.system.V, steps + 1, weight=nm.M, directory=out / "scratch")
+    y = OutputProbe(tail.output_matrix)
+    nm.initialize(tail.chamber_pressures(u(0.0)))
+    c0 = time.process_time()
+    loop = run(nm, steps, sinks=[y, spod.sink()], inputs=lambda t: tail.chamber_pressures(u(t)))
+    cpu["steps"] = comm.allreduce(time.process_time() - c0, op=MPI.MAX)
+    peaks["steps"] = _peak_gb(comm)
+    Y = np.array([v[0] for v in y.values])
+    stats = nm.solver.stats()
+    t0 = time.perf_counter()
+    _, Qh, _ = spod.compute(r)
+    spod.close()
+    rom_error = _rom_error(Qh, Y, u, scene.DT) if comm.rank == 0 else None
+    rom_s = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
+    nm.close()
+    peaks["end"] = _peak_gb(comm)
+    if comm.rank != 0:
+        return None
+    record = {
+        "size": size, "lc": _lc(size), "n_dofs": int(n_dofs), "ranks": comm.size,
+        "solver": solver, "resolved_solver": stats["solver"], "steps": steps,
+        "setup_seconds": setup_s, "phases_seconds": phases, "cpu_seconds_max_rank": cpu,
+        "loop_seconds": loop["seconds"], "seconds_per_step": loop["seconds"] / steps,
+        "cpu_seconds_per_step": cpu["steps"] / steps,
+        "iterations_per_step": stats["iterations_per_solve"],
+        "peak_gb_per_rank": max(peaks["end"]), "peak_gb_by_rank": peaks["end"],
+        "peak_gb_after_phase": {k: max(v) for k, v in peaks.items()},
+        "rom_r": r, "rom_output_error": rom_error, "rom_seconds": rom_s,
+        "output": Y.tolist(), "load_average": os.getloadavg()[0],
+        "petsc_options": petsc_options or {},
+    }
+    path = out / "cases" / f"{size}_{comm.size}_{solver}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record))
+    return record
+
+
+def _rom_error(Qh_all, Y, u, dt) -> float:
+    """L-OpInf (Newmark data relation, certified SPD K and C) on the POD coordinates of the
+    run; relative output error of its simulation from rest against the FOM's."""
+    from .. import core
+    from ..core.metrics import relative_error
+
+    times = dt * np.arange(Qh_all.shape[1])
+    Qbar, D1, D2, Ubar = core.ddt.newmark_data(Qh_all, times, np.array([[u(t) for t in times]]))
+    ops = core.infer_mechanical(Qbar, D1, D2, Ubar)
+    Eh = core.infer_output(Qh_all, Y[None])
+    rom = core.LagrangianROM(K=ops.K, C=ops.C, B=ops.B, E=Eh, scheme="newmark")
+    r = Qh_all.shape[0]
+    tr = rom.simulate(np.zeros(r), np.zeros(r), dt, len(Y) - 1,
+                      inputs=lambda t: np.array([u(t)]))
+    return float(relative_error(Y, tr.Y[0]))
+
+
+# ----------------------------------------------------------------------------------------------
+# driver
+# ----------------------------------------------------------------------------------------------
+def _tree_rss_gb(pid: int) -> float:
+    """Resident memory of a process and all its descendants (GB), from /proc."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(entry))
+    total, todo = 0, [pid]
+    while todo:
+        p = todo.pop()
+        todo.extend(children.get(p, []))
+        try:
+            with open(f"/proc/{p}/status") as f:
+                for line in f:
+                    if line.startswith("VmRSS:"):
+                        total += int(line.split()[1]) * 1024
+        except OSError:
+            pass
+    return total / 1e9
+
+
+def _run_worker(size, ranks, solver, steps, out, max_gb, python, mpiexec, petsc_options) -> dict:
+    """Start one case under mpiexec and watch its memory; the record, or why there is none."""
+    cmd = [mpiexec, "-n", str(ranks), python, "-m", "dolfinx_lopinf.studies.scaling", "--case",
+           "--sizes", size, "--solvers", solver, "--steps", str(steps), "--out", str(out)]
+    if petsc_options:
+        cmd += ["--petsc-options", json.dumps(petsc_options)]
+    log = out / "logs" / f"{size}_{ranks}_{solver}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    t0, peak_tree = time.perf_counter(), 0.0
+    with open(log, "w") as f:
+        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        while proc.poll() is None:
+            peak_tree = max(peak_tree, _tree_rss_gb(proc.pid))
+            if peak_tree > max_gb:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait()
+                return {"size": size, "ranks": ranks, "solver": solver,
+                        "stopped": f"resident memory {peak_tree:.1f} GB > --max-gb {max_gb}"}
+            time.sleep(1.0)
+    path = out / "cases" / f"{size}_{ranks}_{solver}.json"
+    if proc.returncode != 0 or not path.exists():
+        return {"size": size, "ranks": ranks, "solver": solver,
+                "stopped": f"exit code {proc.returncode}; see {log}"}
+    record = json.loads(path.read_text())
+    record["wall_seconds_process"] = time.perf_counter() - t0
+    record["peak_gb_all_ranks_sampled"] = peak_tree
+    return record
+
+
+def fit_exponent(dofs, seconds) -> float | None:
+    """p of the least-squares fit log(seconds) = c + p log(dofs) (None below two sizes)."""
+    dofs, seconds = np.asarray(dofs, float), np.asarray(seconds, float)
+    if len(np.unique(dofs)) < 2:
+        return None
+    return float(np.polyfit(np.log(dofs), np.log(seconds), 1)[0])
+
+
+def summarise(records: list[dict]) -> dict:
+    """The table rows, the fitted exponents per (ranks, solver), and each case's output
+    deviation from the direct solver's at the same size and ranks."""
+    done = [r for r in records if "stopped" not in r]
+    for rec in done:
+        ref = next((d for d in done if d["size"] == rec["size"] and d["ranks"] == rec["ranks"]
+                    and d["resolved_solver"] == "direct"), None)
+        if ref is not None and ref is not rec and len(ref["output"]) == len(rec["output"]):
+            a, b = np.array(rec["output"]), np.array(ref["output"])
+            rec["output_deviation_vs_direct"] = float(np.abs(a - b).max() / np.abs(b).max())
+    exponents = {}
+    for key in sorted({(r["ranks"], r["resolved_solver"]) for r in done}):
+        group = sorted((r for r in done if (r["ranks"], r["resolved_solver"]) == key),
+                       key=lambda r: r["n_dofs"])
+        exponents[f"{key[0]} ranks, {key[1]}"] = {
+            "dofs": [r["n_dofs"] for r in group],
+            "seconds_per_step": [r["seconds_per_step"] for r in group],
+            "exponent": fit_exponent([r["n_dofs"] for r in group], [r["seconds_per_step"] for r in group]),
+            "exponent_cpu": fit_exponent([r["n_dofs"] for r in group],
+                                         [r["cpu_seconds_per_step"] for r in group]),
+        }
+    table = [{k: r.get(k) for k in ("n_dofs", "ranks", "resolved_solver", "setup_seconds",
+                                     "seconds_per_step", "cpu_seconds_per_step", "iterations_per_step",
+                                     "peak_gb_per_rank", "rom_output_error",
+                                     "output_deviation_vs_direct", "load_average")}
+             for r in sorted(done, key=lambda r: (r["ranks"], r["resolved_solver"], r["n_dofs"]))]
+    return {"table": table, "exponents": exponents,
+            "stopped": [r for r in records if "stopped" in r]}
+
+
+def figure(path: Path, records: list[dict], exponents: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    done = [r for r in records if "stopped" not in r]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    for i, (label, e) in enumerate(sorted(exponents.items())):
+        group = sorted((r for r in done if f"{r['ranks']} ranks, {r['resolved_solver']}" == label),
+                       key=lambda r: r["n_dofs"])
+        n = np.array([r["n_dofs"] for r in group], float)
+        colour = f"C{i}"
+        s = np.array([r["seconds_per_step"] for r in group])
+        name = label if e["exponent"] is None else f"{label}: p = {e['exponent']:.2f}"
+        axes[0].loglog(n, s, "o", color=colour, label=name)
+        if e["exponent"] is not None:
+            c = np.polyfit(np.log(n), np.log(s), 1)
+            grid = np.geomspace(n.min(), n.max(), 20)
+            axes[0].loglog(grid, np.exp(np.polyval(c, np.log(grid))), "-", color=colour, lw=1)
+        axes[1].loglog(n, [r["setup_seconds"] for r in group], "o-", color=colour, label=label)
+        axes[2].loglog(n, [r["peak_gb_per_rank"] for r in group], "o-", color=colour, label=label)
+    if done:
+        n = np.array(sorted({r["n_dofs"] for r in done}), float)
+        s0 = min(r["seconds_per_step"] for r in done if r["n_dofs"] == n[0])
+        axes[0].loglog(n, s0 * n / n[0], "k:", lw=1, label="slope 1")
+    axes[0].set(xlabel="dofs", ylabel="wall seconds per Newmark step", title="time per step")
+    axes[1].set(xlabel="dofs", ylabel="seconds", title="set-up (mesh to factorisation)")
+    axes[2].set(xlabel="dofs", ylabel="GB", title="peak resident memory per rank")
+    for ax in axes:
+        ax.grid(True, which="both", alpha=0.3)
+        if done:
+            ax.legend(fontsize=8)
+    steps = sorted({r["steps"] for r in done})
+    fig.suptitle(f"fishtail FOM scaling ({', '.join(map(str, steps))} steps per case; shared machine)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _table(summary: dict) -> str:
+    head = ("dofs", "ranks", "solver", "setup s", "s/step", "cpu s/step", "its", "GB/rank",
+            "ROM err", "dev vs direct", "load")
+    lines = [" | ".join(head)]
+    for r in summary["table"]:
+        dev = r["output_deviation_vs_direct"]
+        lines.append(" | ".join([
+            f"{r['n_dofs']:,}", str(r["ranks"]), r["resolved_solver"], f"{r['setup_seconds']:.1f}",
+            f"{r['seconds_per_step']:.3f}", f"{r['cpu_seconds_per_step']:.3f}",
+            f"{r['iterations_per_step']:.1f}", f"{r['peak_gb_per_rank']:.2f}",
+            f"{r['rom_output_error']:.2e}", "-" if dev is None else f"{dev:.1e}",
+            f"{r['load_average']:.1f}"]))
+    for label, e in summary["exponents"].items():
+        if e["exponent"] is not None:
+            lines.append(f"exponent {label}: {e['exponent']:.2f} (cpu {e['exponent_cpu']:.2f})")
+    for r in summary["stopped"]:
+        lines.append(f"stopped {r['size']} {r['ranks']} ranks {r['solver']}: {r['stopped']}")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="100k,200k,400k",
+                        help=f"comma-separated: {', '.join(SIZES)} or element sizes in metres")
+    parser.add_argument("--ranks", default="1,2", help="comma-separated MPI rank counts")
+    parser.add_argument("--solvers", default="auto", help="comma-separated solver names "
+                        "(dolfinx_lopinf.fem.linsolve.SOLVERS)")
+    parser.add_argument("--steps", type=int, default=200, help="Newmark steps per case")
+    parser.add_argument("--out", default="results/scaling")
+    parser.add_argument("--max-gb", type=float, default=18.0,
+                        help="stop a case whose processes hold more resident memory than this")
+    parser.add_argument("--petsc-options", default=None, help="JSON dict of PETSc options")
+    parser.add_argument("--case", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    from ..errors import InputError
+    from ..fem.linsolve import check_solver
+
+    sizes = [s.strip() for s in args.sizes.split(",") if s.strip()]
+    solvers = [s.strip() for s in args.solvers.split(",") if s.strip()]
+    try:
+        ranks = [int(x) for x in args.ranks.split(",") if x.strip()]
+        options = json.loads(args.petsc_options) if args.petsc_options else None
+    except ValueError as exc:
+        raise InputError(f"--ranks must be integers and --petsc-options a JSON dict: {exc}") from None
+    for s in sizes:
+        _lc(s)
+    for s in solvers:
+        check_solver(s)
+    if args.steps < 4 or not ranks or min(ranks) < 1:
+        raise InputError("--steps must be >= 4 and --ranks positive integers")
+    out = Path(args.out)
+    if args.case:
+        return run_case(sizes[0], solvers[0], args.steps, out, petsc_options=options)
+    out.mkdir(parents=True, exist_ok=True)
+    bindir = Path(sys.executable).parent
+    mpiexec = str(bindir / "mpiexec") if (bindir / "mpiexec").exists() else "mpiexec"
+    records = []
+    summary_path = out / "scaling.json"
+    for size in sizes:
+        for n in ranks:
+            for solver in solvers:
+                rec = _run_worker(size, n, solver, args.steps, out, args.max_gb, sys.executable,
+                                  mpiexec, options)
+                records.append(rec)
+                print(f"{size} {n} ranks {solver}: " + (rec["stopped"] if "stopped" in rec else
+                      f"{rec['n_dofs']:,} dofs, set-up {rec['setup_seconds']:.1f} s, "
+                      f"{rec['seconds_per_step']:.3f} s/step, {rec['peak_gb_per_rank']:.2f} GB/rank, "
+                      f"ROM r=2 error {rec['rom_output_error']:.2e}"), flush=True)
+                summary = summarise(records)
+                summary_path.write_text(json.dumps({"cases": records, **summary}, indent=1))
+    summary = summarise(records)
+    summary_path.write_text(json.dumps({"cases": records, **summary}, indent=1))
+    figure(out / "scaling.png", records, summary["exponents"])
+    print(_table(summary))
+    return summary
+
+
+if __name__ == "__main__":
+    main()
