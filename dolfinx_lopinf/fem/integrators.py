@@ -464,6 +464,7 @@ class MidpointIntegrator(_Closing):
                 fpetsc.set_bc(rhs, self._bcs)
                 reason = self.solver.solve(rhs, dq, extrapolated=self._warm_start(dq))
                 failure = self.solver.describe_failure(reason) if reason <= 0 else ""
+                fpetsc.set_bc(dq, self._bcs)  # the constrained rows exactly
             if reason <= 0:
                 raise StepFailed(f"linear solve failed at step {self.steps_taken + 1}: {failure}")
             f.q1.x.petsc_vec.axpy(1.0, dq)
@@ -786,6 +787,8 @@ class NewmarkIntegrator(_Closing):
         if reason <= 0:
             raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: "
                              f"{self.solver.describe_failure(reason)}")
+        if self.solver.iterative:  # the constrained rows exactly (a preconditioner couples them)
+            fpetsc.set_bc(a, self._bcs)
         qs.copy(q)
         q.axpy(0.25 * dt**2, a)
         vs.copy(v)

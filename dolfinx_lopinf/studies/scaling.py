@@ -120,6 +120,7 @@ def run_case(size: str, solver: str, steps: int, out: Path, *, r: int = 2,
     peaks["steps"] = _peak_gb(comm)
     Y = np.array([v[0] for v in y.values])
     stats = nm.solver.stats()
+    nm_iterations = nm.solver.iteration_history
     t0 = time.perf_counter()
     _, Qh, _ = spod.compute(r)
     spod.close()
@@ -136,6 +137,7 @@ def run_case(size: str, solver: str, steps: int, out: Path, *, r: int = 2,
         "loop_seconds": loop["seconds"], "seconds_per_step": loop["seconds"] / steps,
         "cpu_seconds_per_step": cpu["steps"] / steps,
         "iterations_per_step": stats["iterations_per_solve"],
+        "iterations_by_step": list(nm_iterations),
         "peak_gb_per_rank": max(peaks["end"]), "peak_gb_by_rank": peaks["end"],
         "peak_gb_after_phase": {k: max(v) for k, v in peaks.items()},
         "rom_r": r, "rom_output_error": rom_error, "rom_seconds": rom_s,

@@ -1,0 +1,132 @@
+"""The linear step solvers (fem/linsolve.py): every iterative path gives the direct answer to
+its tolerance (Newmark and the linear midpoint rule, 1 and 2 ranks), and bad solver names or
+PETSc types are refused with a clear InputError."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
+
+from dolfinx_lopinf.errors import InputError  # noqa: E402
+from dolfinx_lopinf.fem import linsolve  # noqa: E402
+from dolfinx_lopinf.fem._dolfinx import ufl  # noqa: E402
+from dolfinx_lopinf.fem.integrators import MidpointIntegrator, NewmarkIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.lagrangian import LagrangianSystem  # noqa: E402
+
+SCRIPT = Path(__file__).with_name("mpi_linsolve.py")
+_spec = importlib.util.spec_from_file_location("mpi_linsolve", SCRIPT)
+bar = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bar)
+
+
+@pytest.fixture(scope="module")
+def system():
+    return bar.build()
+
+
+@pytest.fixture(scope="module")
+def direct(system):
+    """MUMPS at dt, and how far the scheme's answer moves from dt to dt/2 (the size of its
+    truncation error, which the iterative tolerance is tied to)."""
+    Y, q, stats = bar.newmark(*system, "direct")
+    Y_half, _, _ = bar.newmark(*system, "direct", steps=80, dt=bar.DT / 2)
+    return Y, q, stats, _rel(Y, Y_half[::2])
+
+
+def _rel(a, b):
+    return np.abs(a - b).max() / np.abs(b).max()
+
+
+@pytest.mark.parametrize("solver", bar.ITERATIVE)
+def test_newmark_iterative_gives_the_direct_answer(system, direct, solver):
+    """Default tolerance (1e-3 of the extrapolated warm start's residual, ~1 % of the local
+    truncation error): the tip history and the state move from MUMPS's by less than 5 % of
+    what halving dt moves them (measured 0.1-3 %); at ksp_rtol = 1e-10 the CG paths give
+    MUMPS's answer to 1e-8 (Chebyshev would take ~10^4 iterations a step there)."""
+    Y_ref, q_ref, stats_ref, time_error = direct
+    assert stats_ref["solver"] == "direct" and np.abs(Y_ref).max() > 0 and time_error > 1e-4
+    Y, q, stats = bar.newmark(*system, solver)
+    assert stats["solver"] == solver and stats["iterations_per_solve"] >= 1
+    assert _rel(Y, Y_ref) < 0.05 * time_error, (_rel(Y, Y_ref), time_error)
+    assert _rel(q, q_ref) < 0.05 * time_error, (_rel(q, q_ref), time_error)
+    if solver == "chebyshev":
+        return
+    Y, q, _ = bar.newmark(*system, solver, options={"ksp_rtol": 1e-10})
+    assert _rel(Y, Y_ref) < 1e-8 and _rel(q, q_ref) < 1e-8, (_rel(Y, Y_ref), _rel(q, q_ref))
+
+
+def test_midpoint_iterative_gives_the_direct_answer(system):
+    """The linear midpoint rule (no damping) through -A1 = M/dt + dt/4 K: the trajectory within
+    5 % of what halving dt moves it, and MUMPS's to 1e-8 at ksp_rtol = 1e-10."""
+    q_ref = bar.midpoint(system[0], "direct")
+    time_error = _rel(q_ref, bar.midpoint(system[0], "direct", steps=60, dt=bar.DT / 2)[:, 1::2])
+    assert time_error > 1e-4
+    q = bar.midpoint(system[0], "cg+pmg")
+    assert _rel(q, q_ref) < 0.05 * time_error, (_rel(q, q_ref), time_error)
+    q = bar.midpoint(system[0], "cg+pmg", options={"ksp_rtol": 1e-10})
+    assert _rel(q, q_ref) < 1e-8
+
+
+def test_auto_is_direct_and_cg_is_gamg():
+    assert linsolve.resolve("auto") == "direct"
+    assert linsolve.resolve(" CG ") == "cg+gamg"
+    assert linsolve.resolve("cg+pmg") == "cg+pmg"
+
+
+@pytest.mark.parametrize("bad", ["mumps", "gmres", "cg+hypre", "", None, 3])
+def test_bad_solver_names_are_refused(system, bad):
+    sysm, load, _ = system
+    with pytest.raises(InputError, match="solver must be one of 'auto', 'direct'"):
+        NewmarkIntegrator(sysm, bar.DT, input_forms=load, solver=bad)
+    with pytest.raises(InputError, match="solver must be one of"):
+        MidpointIntegrator(sysm, bar.DT, solver=bad)
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"pc_type": "hpyre"}, "'hpyre' is not a PETSc type"),
+    ({"ksp_type": "cgg"}, "'cgg' is not a PETSc type"),
+    ({"-ksp_rtol": 1e-6}, "without the prefix and without '-'"),
+    (["ksp_rtol", 1e-6], "must be a dict"),
+])
+def test_bad_petsc_options_are_refused(system, options, match):
+    sysm, load, _ = system
+    with pytest.raises(InputError, match=match):
+        NewmarkIntegrator(sysm, bar.DT, input_forms=load, solver="cg+jacobi", petsc_options=options)
+
+
+def test_pmg_needs_a_higher_degree_space():
+    sysm, load, _ = bar.build(degree=1, n=(4, 1, 1))
+    with pytest.raises(InputError, match="degree >= 2"):
+        NewmarkIntegrator(sysm, bar.DT, input_forms=load, solver="cg+pmg")
+
+
+def test_newton_steps_keep_the_direct_solve():
+    sysm, _, _ = bar.build(n=(2, 1, 1))
+    q, q_t = sysm.q, sysm.q_t
+    nonlinear = LagrangianSystem(sysm.lagrangian - 0.25 * ufl.inner(q, q) ** 2 * ufl.dx, q, q_t,
+                                 bcs=sysm.bcs)
+    assert not nonlinear.is_quadratic
+    with pytest.raises(InputError, match="keeps its direct solve"):
+        MidpointIntegrator(nonlinear, bar.DT, solver="cg+pmg")
+    MidpointIntegrator(nonlinear, bar.DT, solver="direct").close()
+
+
+@pytest.mark.mpi
+def test_iterative_paths_two_ranks_equal_serial_and_direct(serial_and_parallel):
+    """On 1 and on 2 ranks every iterative path gives the direct answer to its tolerance, and
+    the 2-rank answers are the serial ones to that tolerance too."""
+    a, b = serial_and_parallel(SCRIPT)
+    for run in (a, b):
+        tn, tm = float(run["newmark_time_error"]), float(run["midpoint_time_error"])
+        assert tn > 1e-4 and tm > 1e-4
+        for solver in bar.ITERATIVE:
+            assert _rel(run[f"newmark_Y_{solver}"], run["newmark_Y_direct"]) < 0.05 * tn, solver
+            assert _rel(run[f"newmark_q_{solver}"], run["newmark_q_direct"]) < 0.05 * tn, solver
+        assert _rel(run["midpoint_q_cg+pmg"], run["midpoint_q_direct"]) < 0.05 * tm
+    for key in a.files:
+        scheme = "midpoint" if key.startswith("midpoint") else "newmark"
+        assert _rel(b[key], a[key]) < 0.05 * float(a[f"{scheme}_time_error"]), key
+    assert _rel(b["newmark_q_direct"], a["newmark_q_direct"]) < 1e-10

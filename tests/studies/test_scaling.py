@@ -1,0 +1,58 @@
+"""The scaling study's pieces: the exponent fit, the summary, the command line's refusals, and
+one tiny case end to end (slow: it meshes and runs the fishtail under mpiexec)."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
+
+from dolfinx_lopinf.errors import InputError  # noqa: E402
+from dolfinx_lopinf.studies import scaling  # noqa: E402
+
+
+def test_fit_exponent():
+    n = np.array([1e5, 2e5, 4e5, 8e5])
+    assert scaling.fit_exponent(n, 3e-6 * n**1.33) == pytest.approx(1.33)
+    assert scaling.fit_exponent([1e5, 1e5], [1.0, 1.1]) is None
+
+
+def test_summary_compares_with_direct():
+    def rec(n, solver, y, s):
+        return {"size": str(n), "n_dofs": n, "ranks": 1, "solver": solver, "resolved_solver": solver,
+                "output": y, "seconds_per_step": s, "cpu_seconds_per_step": s, "setup_seconds": 1.0,
+                "iterations_per_step": 1.0, "peak_gb_per_rank": 1.0, "rom_output_error": 1e-3,
+                "load_average": 0.1, "steps": 10}
+    records = [rec(100, "direct", [0.0, 1.0, 2.0], 1.0), rec(100, "cg+pmg", [0.0, 1.0, 2.002], 3.0),
+               rec(200, "direct", [0.0, 1.0], 2.0), {"size": "800k", "ranks": 2, "solver": "auto",
+                                                     "stopped": "memory"}]
+    out = scaling.summarise(records)
+    assert records[1]["output_deviation_vs_direct"] == pytest.approx(1e-3)
+    assert out["exponents"]["1 ranks, direct"]["exponent"] == pytest.approx(1.0)
+    assert out["exponents"]["1 ranks, cg+pmg"]["exponent"] is None
+    assert len(out["table"]) == 3 and out["stopped"][0]["stopped"] == "memory"
+    assert "stopped 800k" in scaling._table(out)
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--solvers", "mumps"], "solver must be one of"),
+    (["--sizes", "huge"], "size 'huge'"),
+    (["--ranks", "two"], "--ranks must be integers"),
+    (["--steps", "2"], "--steps must be >= 4"),
+])
+def test_bad_command_lines_are_refused(argv, match, tmp_path):
+    with pytest.raises(InputError, match=match):
+        scaling.main(argv + ["--out", str(tmp_path)])
+
+
+@pytest.mark.slow
+def test_tiny_case_end_to_end(tmp_path):
+    summary = scaling.main(["--sizes", "25k", "--ranks", "1", "--steps", "8", "--out", str(tmp_path)])
+    (row,) = summary["table"]
+    assert row["resolved_solver"] == "direct" and row["n_dofs"] > 20_000
+    assert row["seconds_per_step"] > 0 and row["peak_gb_per_rank"] > 0.1
+    assert np.isfinite(row["rom_output_error"])
+    data = json.loads((tmp_path / "scaling.json").read_text())
+    assert set(data["cases"][0]["phases_seconds"]) >= {"gmsh", "distribute", "forms", "assemble", "solver"}
+    assert (tmp_path / "scaling.png").stat().st_size > 10_000
