@@ -25,6 +25,8 @@ predicts the same free response). The choice and the residuals are returned for 
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.linalg
 import scipy.optimize
@@ -395,6 +397,7 @@ def _load_kind(pieces) -> str:
     return "linear"
 
 
+@functools.lru_cache(maxsize=4096)
 def _signature(scheme, loads: str):
     """What of ``scheme``'s relation the data can see, or None (no closed form here).
 

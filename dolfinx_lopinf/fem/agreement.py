@@ -62,7 +62,7 @@ from .. import errors
 from .._mpi_abort import _summary, abort
 from ..errors import InputError, RanksDisagreeError
 
-__all__ = ["agree", "check", "together", "digest", "same"]
+__all__ = ["agree", "arrive", "check", "together", "digest", "same"]
 
 #: seconds a rank that raised alone waits for the others before aborting (LOPINF_MPI_TIMEOUT)
 DEFAULT_TIMEOUT = 60.0
@@ -307,3 +307,25 @@ def together(comm, where: str):
         raise
     finally:
         dup.Free()
+
+
+def arrive(comm, where: str, hint: str) -> None:
+    """Wait until every rank has reached ``where`` (a non-blocking barrier). A rank that waits
+    longer than ``LOPINF_MPI_TIMEOUT`` seconds says so on stderr, once, with ``hint`` (how the
+    call must be made), and keeps waiting: a collective called on some ranks only - e.g.
+    ``if comm.rank == 0: rec.snapshots()`` - is then named instead of hanging silently. It does
+    not abort: ranks may legitimately arrive minutes apart."""
+    if comm.size == 1:
+        return
+    # on the communicator itself: a Dup would already block until every rank arrives
+    request = comm.Ibarrier()
+    start, limit, pause, told = time.monotonic(), _timeout(), 1e-4, False
+    while not request.Test():
+        if not told and time.monotonic() - start > limit:
+            sys.stderr.write(
+                f"dolfinx_lopinf: rank {comm.rank} of {comm.size} has waited {limit:.0f} s in "
+                f"{where} for the other ranks. {hint}\n")
+            sys.stderr.flush()
+            told = True
+        time.sleep(pause)
+        pause = min(2 * pause, 0.05)
