@@ -180,16 +180,12 @@ def check_uniform_times(times, rtol: float = 1e-6) -> float:
 
 
 def pow2_scale(*arrays) -> float:
-    """A power of two close to the largest magnitude in ``arrays`` (1.0 if all are zero or
-    empty). Dividing by it is exact (barring subnormals) and brings the data near 1, so
-    sums of squares neither overflow (data ~ 1e160) nor underflow (data ~ 1e-170)."""
-    top = 0.0
-    for a in arrays:
-        if a.size:
-            top = max(top, float(np.max(np.abs(a))))
-    if not (top > 0 and np.isfinite(top)):
-        return 1.0
-    return float(np.ldexp(1.0, int(np.frexp(top)[1])))
+    """The power of two nearest to the largest magnitude in ``arrays`` (None entries and empty
+    arrays skipped; 1.0 if all are zero). Dividing by it is exact (barring subnormals) and
+    brings the data near 1, so sums of squares neither overflow (data ~ 1e160) nor underflow
+    (data ~ 1e-170)."""
+    big = max((float(np.abs(a).max()) for a in arrays if a is not None and a.size), default=0.0)
+    return 1.0 if big == 0 or not np.isfinite(big) else float(2.0 ** np.round(np.log2(big)))
 
 
 def fro_norm(a: np.ndarray) -> float:

@@ -66,7 +66,9 @@ import scipy.linalg
 from ..errors import (InputError, NonLagrangianWarning, SolverFailedError, SolverWarning,
                       StepFailedError)
 from ._checks import as_real_array, check_matrix, check_positive
+from ._blas import one_blas_thread
 from .compiled import NEWTON_STALL
+from .conic import solve_raw
 
 CONSTRAINTS = ("none", "spd", "quartic", "sos")
 SCHEMES = ("midpoint", "avf")
@@ -439,9 +441,7 @@ def fit_polynomial(data, *, constraint: str = "sos", damping: bool = True, eps: 
     """Fit U (degree 2-4), C and B to the midpoint relation of ``data`` (one BLAS thread: the
     compression's QR and the solver's matrices are a few hundred wide - threads cost more
     than they give there, and much more on a busy machine)."""
-    from .inference import _blas_controller
-
-    with _blas_controller().limit(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _fit_polynomial(data, constraint=constraint, damping=damping, eps=eps,
                                eps_gram=eps_gram, ridge=ridge, solver=solver, strict=strict)
 
@@ -672,13 +672,8 @@ def _damping_block(cp, constraint, r, norms, x_ls, p_pot, eps, sig):
 
 def _clarabel(cp, prob) -> dict:
     """Solve ``prob`` with Clarabel (:data:`CLARABEL_OPTIONS`); its certificate."""
-    from cvxpy.reductions.solvers.solver_inverse_data import SolverInverseData
-
     t0 = time.perf_counter()
-    data, chain, inverse = prob.get_problem_data(cp.CLARABEL)
-    raw = chain.solver.solve_via_data(data, False, False, dict(CLARABEL_OPTIONS))
-    inverse[-1] = SolverInverseData(inverse[-1], solver_options={})
-    prob.unpack_results(raw, chain, inverse)
+    raw = solve_raw(cp, prob, CLARABEL_OPTIONS)
     seconds = time.perf_counter() - t0
     if prob.status not in ("optimal", "optimal_inaccurate"):
         raise SolverFailedError(f"Clarabel failed on the polynomial L-OpInf problem: status {prob.status}")

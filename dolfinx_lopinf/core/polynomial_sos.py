@@ -26,6 +26,7 @@ from math import comb
 import numpy as np
 import scipy.linalg
 
+from ._blas import one_blas_thread
 from .lsq import psd_qp
 from .lsq.psd_qp import vech
 
@@ -64,11 +65,9 @@ def moment_matrix(points, r):
 
 def solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol=1e-8, points=None,
               f_const=0.0):
-    """One BLAS thread (:func:`~dolfinx_lopinf.core.inference._serial_blas`: its matrices are
+    """One BLAS thread (:func:`~dolfinx_lopinf.core._blas.serial_blas`: its matrices are
     a few hundred wide; threads cost more than they give there)."""
-    from .inference import _blas_controller
-
-    with _blas_controller().limit(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, points, f_const)
 
 

@@ -214,9 +214,9 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     # Clarabel's objective on the reduced problem (B minimised out exactly as in ours), at
     # its point made feasible (Clarabel meets K, C >= eps I only to its own tolerance, and
     # an infeasible point may undercut the bound by ~1e-8: a verdict rounding could flip)
-    from dolfinx_lopinf.core.inference import _floor
+    from dolfinx_lopinf.core.gram import psd_floor
 
-    theta_ref = np.hstack([_floor(ref.K, 1e-8), _floor(ref.C, 1e-8)])
+    theta_ref = np.hstack([psd_floor(ref.K, 1e-8), psd_floor(ref.C, 1e-8)])
     f_ref_S = float(np.sum((theta_ref @ L_S + Z_S) ** 2))
     # Clarabel's point is feasible, so it cannot beat the certified lower bound
     assert lower <= f_ref_S * (1 + 1e-9), (lower, f_ref_S)
@@ -243,7 +243,7 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
     caller's thread count back, also when they raise."""
     from threadpoolctl import ThreadpoolController
 
-    from dolfinx_lopinf.core.inference import _blas_controller
+    from dolfinx_lopinf.core._blas import blas_controller
 
     ctl = ThreadpoolController()
     data, _ = _forced_damped_data(r=3, m=1, n=800)
@@ -253,7 +253,7 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
         original = lo.core.inference.gram_data
 
         def spy(*a, **k):
-            seen.append([p["num_threads"] for p in _blas_controller().info() if p["user_api"] == "blas"])
+            seen.append([p["num_threads"] for p in blas_controller().info() if p["user_api"] == "blas"])
             return original(*a, **k)
 
         lo.core.inference.gram_data = spy

@@ -6,7 +6,7 @@ free (B), the compressed problem
 
     min_Theta  ||Theta L + Z||_F^2,     G = L L^T (p, p),  X = Z L^T (r, p)
 
-(see :class:`~dolfinx_lopinf.core.inference.GramData`), so their cost never depends on the number
+(see :class:`~dolfinx_lopinf.core.gram.GramData`), so their cost never depends on the number
 of snapshots K. A :class:`Problem` holds (L, Z, the block layout, eps); a strategy's
 ``solve(problem)`` returns ``(Theta, Certificate)``, the free columns minimised out exactly
 first (:func:`eliminate_free`):

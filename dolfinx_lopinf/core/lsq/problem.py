@@ -144,7 +144,7 @@ class Problem:
     blocks S_k >= eps I (r x r each), then ``n_free`` free columns F.
 
     ``L`` (p, p) is the factor of the Gram matrix G = L L^T and ``Z`` (r, p) the data term
-    (:func:`dolfinx_lopinf.core.inference.gram_data`), so nothing here depends on the number of
+    (:func:`dolfinx_lopinf.core.gram.gram_data`), so nothing here depends on the number of
     snapshots. In the vech unknowns x of the blocks (no free columns),
     f = x^T H x + 2 h^T x + ||Z||^2 with ``H, h = normal_equations``.
     """
@@ -219,7 +219,7 @@ class Problem:
     def with_ridge(self, ridge: float):
         """The problem plus gamma^2 ||Theta diag(s)||^2, s_j = ||L_j|| (the data rows' norms),
         gamma = ``ridge`` sigma_1(diag(1/s) L): the ridge of
-        :func:`~dolfinx_lopinf.core.inference.gram_data`, once more. One QR of
+        :func:`~dolfinx_lopinf.core.gram.gram_data`, once more. One QR of
         [[L^T, Z^T], [gamma diag(s), 0]], whose leading block row is [L'^T, Z'^T] (the
         constant ||R_22||^2 dropped, as ``gram_data`` drops the data's own)."""
         p, r = self.L.shape[0], self.r
