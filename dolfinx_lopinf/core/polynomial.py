@@ -191,10 +191,6 @@ class PolynomialPotential:
         g += 4.0 * np.einsum("ijkl,jn,kn,ln->in", self.T4, Q, Q, Q)
         return g
 
-    def hessian(self, q: np.ndarray) -> np.ndarray:
-        """Hessian of U at one q (r,)."""
-        return self.K + 6.0 * (self.T3 @ q) + 12.0 * ((self.T4 @ q) @ q)
-
     def force_and_jacobian(self, q):
         T3q = self.T3 @ q
         T4q = self.T4 @ q

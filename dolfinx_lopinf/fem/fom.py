@@ -95,12 +95,6 @@ class StateMap:
         blocks = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
         return self.to_dofs(states)[(blocks.astype(np.int64)[:, None] * bs + np.arange(bs)[None, :]).ravel()]
 
-    def operator_to_state(self, A: np.ndarray) -> np.ndarray:
-        """A dof-space bilinear form matrix (n, n) expressed in state coordinates:
-        S^-T A S^-1 where state = S dofs."""
-        As = A[np.ix_(self.order, self.order)]
-        return As / np.outer(self.scale, self.scale)
-
 
 def owned_global_dofs(V) -> np.ndarray:
     """Global indices of this rank's owned dofs (blocked spaces unrolled)."""

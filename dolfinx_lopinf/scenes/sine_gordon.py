@@ -54,10 +54,6 @@ class SineGordon:
     x_local: np.ndarray  # arclength coordinate of the local dofs
     h: float
 
-    def local_values(self, f):
-        """Local dof array of f(x) (f a numpy function of the arclength coordinate)."""
-        return f(self.x_local)
-
 
 def closed_mesh(n: int, length: float, comm=MPI.COMM_WORLD):
     """A periodic 1D mesh of n equal cells: a regular n-gon of perimeter ``length``."""

@@ -30,6 +30,12 @@ def _forced_damped_data(r=5, m=2, n=6000, dt=2e-3, noise=0.0, seed=0):
     return (Qh, dQh, ddQh, U[:, 4:-4]), (K, C, B)
 
 
+def _solve(strategy, L, Z, n_blocks, eps):
+    """(Theta, certificate dict) of ``strategy`` on ``lsq.Problem(L, Z, n_blocks, eps)``."""
+    theta, cert = strategy.solve(lsq.Problem(L, Z, n_blocks, eps))
+    return theta, cert.as_dict()
+
+
 def _quiet(fn, *args, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -69,7 +75,7 @@ def test_active_constraints_match_clarabel():
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-data[3].shape[0]:] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_ipm(L_S, Z_S, 2, 1e-8)
+    theta, info = _solve(lsq.Barrier(), L_S, Z_S, 2, 1e-8)
     assert info["converged"] and info["duality_gap"] < 1e-8
     r = data[0].shape[0]
     assert np.allclose(theta[:, :r], ours.K, rtol=1e-4, atol=1e-6 * np.abs(ours.K).max())
@@ -82,7 +88,7 @@ def test_conservative_admm_certificate_and_lyapunov_path():
     # a target whose symmetric minimiser is indefinite: K* = -diag(...) mixes signs
     K_star = np.diag([5.0, 2.0, 1.0, -0.5, -2.0, 0.3])
     Z = -K_star @ L
-    K, info = lsq.solve_psd_single(L, Z, 1e-8)
+    K, info = _solve(lsq.EigenbasisADMM(), L, Z, 1, 1e-8)
     assert info["converged"]
     kkt = lsq.kkt(L, Z, K, [slice(0, r)], 1e-8)
     assert kkt["multiplier_min_eig"] > -1e-7 and kkt["complementarity"] < 1e-6
@@ -200,7 +206,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method=method)
+    theta, info = _solve(lsq.PSDBlocks(method=method), L_S, Z_S, 2, 1e-8)
     assert info["converged"] and info["method"] == {"auto": "ipm", "admm": "admm+face"}[method]
     assert info["duality_gap"] <= 1e-8
     assert min(info["face_ranks"]) < r  # an active constraint: a proper face
@@ -280,16 +286,16 @@ def test_interior_point_crossover_and_fallback_are_certified():
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    full, info_full = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
+    full, info_full = _solve(lsq.PSDBlocks(), L_S, Z_S, 2, 1e-8)
     assert info_full["method"] == "ipm" and not info_full["ipm"].get("crossover")
     f_full = np.sum((full @ L_S + Z_S) ** 2)
     for ipm_iters, method in [(5, "ipm"), (2, "admm+face")]:
-        theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, ipm_max_iter=ipm_iters)
+        theta, info = _solve(lsq.PSDBlocks(ipm_max_iter=ipm_iters), L_S, Z_S, 2, 1e-8)
         assert info["converged"] and info["method"] == method and info["duality_gap"] <= 1e-8
         assert info["ipm"].get("crossover", False) == (method == "ipm")
         assert np.sum((theta @ L_S + Z_S) ** 2) == pytest.approx(f_full, rel=2e-8)
     with pytest.raises(ValueError, match="method"):
-        lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method="clarabel")
+        _solve(lsq.PSDBlocks(method="clarabel"), L_S, Z_S, 2, 1e-8)
 
 
 @pytest.mark.parametrize("seed,eliminated", [(2, True), (0, False)])
@@ -306,8 +312,8 @@ def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
-    theta_full, info_full = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, eliminate=False)
+    theta, info = _solve(lsq.PSDBlocks(), L_S, Z_S, 2, 1e-8)
+    theta_full, info_full = _solve(lsq.PSDBlocks(eliminate=False), L_S, Z_S, 2, 1e-8)
     assert info["eliminated_blocks_tried"] == [0] and "eliminated_blocks_tried" not in info_full
     assert (info["ipm"].get("eliminated_blocks") == [0]) == eliminated
     assert info["face_ranks"][0] == r if eliminated else info["face_ranks"][0] < r

@@ -95,15 +95,6 @@ def _resolved(problem: Problem):
     return resolved, ridge
 
 
-def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, **options
-                     ) -> tuple[np.ndarray, dict]:
-    """:class:`PSDBlocks` (``options``: its parameters) on ``Problem(L, Z, n_blocks, eps)``:
-    ``(Theta, certificate dict)``; ``["ipm"]["trace"]`` lists (step, centring sigma,
-    m mu / f) of every interior point iteration."""
-    theta, cert = PSDBlocks(**options).solve(Problem(L, Z, n_blocks, eps))
-    return theta, cert.as_dict()
-
-
 class Auto(Strategy):
     """The default of :func:`dolfinx_lopinf.core.infer_mechanical`.
 
