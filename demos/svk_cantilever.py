@@ -57,7 +57,7 @@ from dolfinx_lopinf.fem import probes
 from dolfinx_lopinf.studies import harness
 from dolfinx_lopinf.viz import render
 from dolfinx_lopinf.fem._dolfinx import MPI
-from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.state import output_matrix_in_state
 from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import svk_cantilever as scene
 

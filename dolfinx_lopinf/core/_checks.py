@@ -120,6 +120,20 @@ def check_int(value, name: str, minimum: int | None = None) -> int:
     return v
 
 
+def check_real(value, name: str) -> float:
+    """``value`` as a finite Python float (a real scalar: strings, bytes, complex numbers,
+    booleans and None refused)."""
+    try:
+        if isinstance(value, (str, bytes, complex, bool)) or value is None:
+            raise TypeError
+        x = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a real number, got {value!r}") from None
+    if not np.isfinite(x):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return x
+
+
 def check_positive(value, name: str) -> float:
     """``value`` as a positive finite float (a real scalar; bools and strings refused)."""
     a = None if isinstance(value, (bool, np.bool_, str, bytes)) else np.asarray(value)

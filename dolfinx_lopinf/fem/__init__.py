@@ -6,7 +6,8 @@ Lagrangian (``affine``) and the FOM at any parameter (``param_fom``). Importing 
 DOLFINx."""
 
 from .derived import DerivedOutput
-from .fom import StateMap, output_matrix_in_state, point_output_matrix, run
+from .fom import run
+from .state import StateMap, output_matrix_in_state, point_output_matrix
 from .galerkin_nonlinear import GalerkinForce
 from .integrators import MidpointIntegrator, NewmarkIntegrator
 from .intrusive import galerkin_rom

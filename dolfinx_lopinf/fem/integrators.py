@@ -1,4 +1,4 @@
-"""Midpoint variational integrator on PETSc objects (METHOD.md section 2).
+"""Midpoint variational integrator on PETSc objects (docs/method.md#discrete-euler-lagrange).
 
 One step maps (q0, p0) to (q1, p1) by
 
@@ -523,7 +523,7 @@ class MidpointIntegrator(_Closing):
 
 class NewmarkIntegrator(_Closing):
     """Newmark average acceleration (gamma = 1/2, beta = 1/4) for a forced, damped linear
-    system  M q_tt + C q_t + K q = sum_j b_j u_j(t)  (METHOD.md section 2):
+    system  M q_tt + C q_t + K q = sum_j b_j u_j(t)  (docs/method.md#newmark-and-generalised-alpha):
 
         q* = q + dt v + dt^2/4 a,   v* = v + dt/2 a
         A a1 = sum_j b_j u_j(t1) - C v* - K q*,   A = M + dt/2 C + dt^2/4 K  (factored once)

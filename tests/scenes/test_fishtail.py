@@ -18,7 +18,9 @@ def small():
 
 def _tip_history(f, nm, u, steps=40):
     """Newmark through the one time loop, with an output and an energy probe."""
-    from dolfinx_lopinf.fem.fom import EnergyProbe, OutputProbe, run
+    from dolfinx_lopinf.fem.fom import run
+
+    from dolfinx_lopinf.fem.loop import EnergyProbe, OutputProbe
 
     nm.initialize(f.chamber_pressures(0.0))
     y, e = OutputProbe(f.output_matrix), EnergyProbe()
