@@ -148,7 +148,7 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     for a in cfg["train_amps"]:
         Qh = basis.project(runs[a][0].Q)
         datas.append(pl.midpoint_data(Qh, dt, half_step_inputs(a, Qh.shape[1] - 1, dt)))
-    data = pl._concat(datas)
+    data = pl.concat_data(datas)
     Qh_train = np.hstack([basis.project(runs[a][0].Q) for a in cfg["train_amps"]])
     models, fits = {}, {}
     # polynomial L-OpInf from black-box probes: one FOM midpoint step of h .. h/16 from lifted

@@ -153,6 +153,7 @@ def mass_row(kind: str, r: int, repeats: int = 3, clarabel: bool = True) -> dict
 def poly_data(r: int, seed: int = 2):
     """Probe-style data of the polynomial tests' sum-of-squares potential (1e-4 noise)."""
     from ..core import polynomial as pl
+    from ..core.polynomial.fit import _monomial_scale
 
     rng = np.random.default_rng(seed)
     n = r + r * (r + 1) // 2
@@ -161,7 +162,7 @@ def poly_data(r: int, seed: int = 2):
     M2, M3, M4 = pl.gram_maps(r)
     theta0 = np.concatenate([M2 @ G.ravel(), M3 @ G.ravel(), M4 @ G.ravel()])
     scales = np.logspace(0, -4, r)
-    div = np.concatenate([pl._monomial_scale(np.sqrt(scales), pl.monomials(r, d)) for d in (2, 3, 4)])
+    div = np.concatenate([_monomial_scale(np.sqrt(scales), pl.monomials(r, d)) for d in (2, 3, 4)])
     pot = pl.PolynomialPotential.from_coefficients(theta0 / div, r)
     N = int(3 * pl.n_unknowns(r, 1)["total"] / r) + 10
     rng = np.random.default_rng(4)
