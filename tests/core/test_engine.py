@@ -198,7 +198,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     ("admm") each return a feasible point whose certified duality gap is <= 1e-8, and that
     certified lower bound does not exceed Clarabel's value. (20, 1) is the case where ADMM
     needed 144 iterations to find the face."""
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
     from dolfinx_lopinf.core.inference import _solve_cvxpy, gram_data
 
     Qh, dQh, ddQh, U = forced_data(r, 3000, seed=seed)
@@ -278,7 +278,7 @@ def test_interior_point_crossover_and_fallback_are_certified():
     """Stopped early, the interior point method hands its face to Newton on the fixed-rank
     face (crossover, certified in a few steps); stopped too early for the face to be right,
     ADMM + face Newton takes over - every path ends certified."""
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
     from dolfinx_lopinf.core.inference import gram_data
 
     Qh, dQh, ddQh, U = forced_data(12, 3000, seed=2)
@@ -304,7 +304,7 @@ def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
     minimised out exactly. Seed 2: K stays > eps I at the optimum, the reduced run is kept
     and equals the full interior point's answer; seed 0: K is active at the optimum, the
     reduced run is abandoned and the full one answers. Both certified <= 1e-8."""
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
     from dolfinx_lopinf.core.inference import gram_data
 
     r = 12
