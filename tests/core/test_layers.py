@@ -103,6 +103,15 @@ def _graph():
     return {m: _imports(p, set(files)) for m, p in files.items()}
 
 
+def test_no_two_modules_import_each_other():
+    """No circle of two modules, function-local imports included (a package's __init__ that
+    hands its submodules' names on is its face, not a party)."""
+    graph = _graph()
+    pairs = sorted({tuple(sorted((a, b))) for a, deps in graph.items() for b in deps
+                    if a in graph.get(b, ()) and not (a.startswith(b + ".") or b.startswith(a + "."))})
+    assert pairs == [], pairs
+
+
 def test_core_imports_neither_the_dolfinx_layer_nor_anything_above_it():
     graph = _graph()
     above = ("dolfinx_lopinf.fem", "dolfinx_lopinf.scenes", "dolfinx_lopinf.studies",
