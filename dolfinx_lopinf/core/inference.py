@@ -1,4 +1,5 @@
-"""Lagrangian operator inference (L-OpInf) and the standard OpInf baseline (METHOD.md s. 4).
+"""Lagrangian operator inference (L-OpInf) and the standard OpInf baseline
+(docs/method.md#certificate).
 
 Mechanical ROM with reduced mass fixed to I:
 
@@ -304,7 +305,7 @@ def infer_opinf(Qh, dQh, ddQh, U=None, *, damping: bool = True, ridge: float = R
 @serial_blas
 def infer_wave(Qh, ddQh, Fh, *, negative_semidefinite: bool = False, ridge: float = RIDGE,
                strict: bool = False) -> MechanicalOperators:
-    """Symmetric Kh of the gray-box wave ROM qh_tt = Kh qh - Fh (METHOD.md section 4).
+    """Symmetric Kh of the gray-box wave ROM qh_tt = Kh qh - Fh (docs/method.md#wave-and-sine-gordon).
 
     Args:
         Qh, ddQh, Fh: (r, K) reduced states, their second derivatives and the reduced
