@@ -9,7 +9,8 @@ from .derived import DerivedOutput
 from .fom import run
 from .state import StateMap, output_matrix_in_state, point_output_matrix
 from .galerkin_nonlinear import GalerkinForce
-from .integrators import MidpointIntegrator, NewmarkIntegrator
+from .integrators import MidpointIntegrator
+from .newmark import NewmarkIntegrator
 from .intrusive import galerkin_rom
 from .lagrangian import LagrangianSystem
 from .probes import probe, probe_points

@@ -19,7 +19,10 @@ from ._dolfinx import MPI, dolfinx
 from ..core._checks import check_int
 from ..errors import InputError
 from .agreement import agree, together
-from .integrators import MidpointIntegrator, NewmarkIntegrator
+from .integrators import MidpointIntegrator
+
+
+from .newmark import NewmarkIntegrator
 
 
 class LoopState:

@@ -31,7 +31,7 @@ from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
 from ..fem.fom import run
 from ..fem.loop import EnergyProbe, OutputProbe, Progress
 from ..fem.state import point_output_matrix
-from ..fem.integrators import NewmarkIntegrator, rigid_body_modes
+from ..fem.newmark import NewmarkIntegrator, rigid_body_modes
 from ..fem.lagrangian import LagrangianSystem
 from . import fishtail_geometry as geometry
 

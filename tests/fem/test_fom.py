@@ -217,7 +217,9 @@ def _option_names(prefix):
 def test_integrators_share_one_protocol_and_leave_no_petsc_options(beam):
     """Midpoint (linear and Newton) and Newmark are Integrators; each gets its own options
     prefix; the options are gone from the global database once read; close() destroys."""
-    from dolfinx_lopinf.fem.integrators import Integrator, NewmarkIntegrator
+    from dolfinx_lopinf.fem.integrators import Integrator
+
+    from dolfinx_lopinf.fem.newmark import NewmarkIntegrator
 
     msh = dolfinx.mesh.create_interval(MPI.COMM_WORLD, 50, [-20.0, 20.0])
     V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))
@@ -245,7 +247,7 @@ def test_one_loop_drives_both_schemes_with_sinks(beam):
     outputs and energies; it drives Newmark too."""
     from dolfinx_lopinf.fem.fom import run
     from dolfinx_lopinf.fem.loop import EnergyProbe, FieldSnapshots, OutputProbe
-    from dolfinx_lopinf.fem.integrators import NewmarkIntegrator
+    from dolfinx_lopinf.fem.newmark import NewmarkIntegrator
 
     q0, v0 = beam.initial_state()
     snaps, info = lo.run(beam.system, q0, v0, scene.DT, 20 * scene.DT, output_matrix=beam.output_matrix,

@@ -7,7 +7,7 @@ import pytest
 pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 from dolfinx_lopinf.fem._dolfinx import MPI  # noqa: E402
-from dolfinx_lopinf.fem.integrators import NewmarkIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator  # noqa: E402
 from dolfinx_lopinf.scenes import fishtail as ft  # noqa: E402
 
 
@@ -64,7 +64,7 @@ def test_fishtail_demo_quick(quick_demo):
 def test_rigid_body_modes_span_the_kernel_of_free_elasticity():
     from dolfinx_lopinf.fem._dolfinx import dolfinx, ufl
     import dolfinx.fem.petsc
-    from dolfinx_lopinf.fem.integrators import rigid_body_modes
+    from dolfinx_lopinf.fem.newmark import rigid_body_modes
 
     msh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 0.5, 0.3]], [4, 3, 2])
     V = dolfinx.fem.functionspace(msh, ("Lagrange", 2, (3,)))
