@@ -48,7 +48,7 @@ QUICK = dict(t_train=0.01, t_end=0.04, t_energy=0.2, t_long=0.3,
 
 
 def main(argv=None):
-    args = harness.parse(__doc__, argv, out="results/beam", quick="short windows, r in {4, 8} (< 1 min)")
+    args = harness.parse(__doc__, argv, out="results/beam", quick="short windows, r in {4, 8}")
     cfg = QUICK if args.quick else FULL
     out = args.out
     comm = MPI.COMM_WORLD

@@ -230,8 +230,8 @@ def _simulate(method, rom, *args, atol=0.0, **kwargs):
     the two loops' states or None): the polynomial models run compiled (numba, when available)
     and again with the numpy reference loop; the assembled Galerkin ROMs run the numpy loop
     (their force is a DOLFINx assembly) with the simplified Newton (jacobian='lazy': a force
-    costs one assembly, its Jacobian r + 1; measured 2-3.6x faster than fresh Newton, states
-    equal to 7e-10). The compiled and numpy loops do the same arithmetic in another order, so
+    costs one assembly, its Jacobian r + 1, so keeping the Jacobian saves most of the work; the
+    states equal fresh Newton's to 7e-10). The compiled and numpy loops do the same arithmetic in another order, so
     they agree to rounding at first; over long runs of a nonlinear (chaotic) model the
     difference grows - recorded, not hidden."""
     kwargs.setdefault("on_failure", "stop")  # an unstable fit is a result of the comparison

@@ -30,7 +30,7 @@ fitted the way its tutorials fit it, so the demos can show it beside L-OpInf.
 Time integration (``integrator=``). The tutorials integrate with ``solve_ivp(method="BDF")``
 at its default tolerances (rtol 1e-3), which adds an error of its own: for the beam demo's
 mass-orthonormal r = 20 peer, test error 1.9e-3 instead of 8.5e-7 and FOM energy error 3.6e-3
-instead of 1e-8 to 2 s, at 10 s per run (measured). The default here, ``"exact"``, integrates
+instead of 1e-8 to 2 s, and a slow run. The default here, ``"exact"``, integrates
 the *inferred* linear ODE exactly: x_{k+1} = expm(A dt) x_k, with inputs linear between the
 sample times (first-order hold, an augmented matrix exponential). So a peer's error is that of its
 model, not of an integrator tolerance - and the regulariser search (which integrates once

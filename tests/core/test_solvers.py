@@ -333,8 +333,8 @@ def test_face_multipliers_give_a_sound_bound_at_any_feasible_point():
 
 
 # held-out data (seeds the benchmark does not use) on which the interior point stalled at
-# m mu / f ~ 1e-8: before the face multipliers the first two fell back to ADMM (46-49 ms)
-# and the last two ran through ADMM into the barrier, uncertified (195-394 ms)
+# m mu / f ~ 1e-8: before the face multipliers the first two fell back to ADMM and the last
+# two ran through ADMM into the barrier, uncertified
 STALLED = [("mixed", 12, 10000, 1), ("mixed", 4, 10000, 3), ("rigid", 12, 10000, 6),
            ("mixed", 4, 10000, 15)]
 
@@ -478,9 +478,9 @@ def test_rank_deficient_two_block_fits_are_certified_with_the_ridge_raised(seed,
     """r = 16, both blocks, data of numerical rank ~2/3 of the rows: the normal equations
     square the condition (H singular to double precision, or condition ~1e17), so the
     interior point's directions were noise in the weak directions. Before: ADMM then the
-    barrier, 1-2 s and uncertified (a 'gap' of up to 6e287). Now the ridge is raised until
+    barrier, long and uncertified (a 'gap' of up to 6e287). Now the ridge is raised until
     cond(H) <= COND_MAX (said by an IllConditionedDataWarning) and the interior point
-    certifies (13-41 ms)."""
+    certifies."""
     data = _rank_deficient(16, seed, exact)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")

@@ -195,10 +195,10 @@ class Problem:
         sets have 1e5 - 1e7). Where cond(H) > COND_MAX - rank-deficient data, whose condition
         the normal equations square, so gram_data's ridge 1e-9 sigma_1 is invisible in them -
         the interior point's directions carry errors ~u cond(H) and its dual residual stalls
-        (r = 16 - 20: gaps 1e-4 - 1e-3, then ADMM and the barrier for 1-4 s, uncertified):
+        (r = 16 - 20: gaps 1e-4 - 1e-3, then ADMM and the barrier, long and uncertified):
         the ridge is raised (:meth:`with_ridge`) to the first of RIDGE_STEPS that brings the
-        condition to COND_MAX. Computed only when asked (the estimate costs ~0.2 ms at
-        r = 20): :class:`~dolfinx_lopinf.core.lsq.Auto` asks after the interior point fails."""
+        condition to COND_MAX. Computed only when asked (the estimate costs a factorisation
+        of H): :class:`~dolfinx_lopinf.core.lsq.Auto` asks after the interior point fails."""
         return self._resolution
 
     @functools.cached_property
