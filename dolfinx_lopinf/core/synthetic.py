@@ -116,6 +116,21 @@ def active_data(kind: str, r: int, n: int, seed: int = 0):
     return Qh, dQh, ddQh, U
 
 
+def _chain(n, k, c):
+    """(K, C, B) of a chain of n masses joined by springs k[i] and dampers c[i] between masses i
+    and i + 1 (both ends free), two inputs: at the first and at the middle mass."""
+    K, C = np.zeros((n, n)), np.zeros((n, n))
+    for i in range(n - 1):
+        for A, v in ((K, k[i]), (C, c[i])):
+            A[i, i] += v
+            A[i + 1, i + 1] += v
+            A[i, i + 1] -= v
+            A[i + 1, i] -= v
+    B = np.zeros((n, 2))
+    B[0, 0], B[n // 2, 1] = 1.0, 1.0
+    return K, C, B
+
+
 def chain_data(r: int, n: int, seed: int = 0):
     """A forced, damped spring chain of r masses, both ends free (a rigid mode), half the
     dampers missing, two inputs (at the first and the middle mass), n samples, sensor noise
@@ -123,15 +138,7 @@ def chain_data(r: int, n: int, seed: int = 0):
     rng = np.random.default_rng(seed + 7 * r)
     k = rng.uniform(0.5, 2.0, r)
     c = np.where(rng.uniform(size=r) < 0.5, 0.0, rng.uniform(0.01, 0.1, r))
-    K, C = np.zeros((r, r)), np.zeros((r, r))
-    for i in range(r - 1):
-        for A, v in ((K, k[i]), (C, c[i])):
-            A[i, i] += v
-            A[i + 1, i + 1] += v
-            A[i, i + 1] -= v
-            A[i + 1, i] -= v
-    B = np.zeros((r, 2))
-    B[0, 0], B[r // 2, 1] = 1.0, 1.0
+    K, C, B = _chain(r, k, c)
     f1, f2 = rng.uniform(0.3, 2.0, 2)
 
     def u(t):
@@ -228,15 +235,7 @@ def mass_data(kind: str, r: int, n: int = 1500, seed: int = 0):
         k = rng.uniform(50.0, 200.0, N - 1)
         m = rng.uniform(0.5, 2.0, N)
         c = np.where(rng.uniform(size=N - 1) < 0.5, 0.0, rng.uniform(0.01, 0.05, N - 1))
-        K, C = np.zeros((N, N)), np.zeros((N, N))
-        for i in range(N - 1):
-            for A, v in ((K, k[i]), (C, c[i])):
-                A[i, i] += v
-                A[i + 1, i + 1] += v
-                A[i, i + 1] -= v
-                A[i + 1, i] -= v
-        B = np.zeros((N, 2))
-        B[0, 0], B[N // 2, 1] = 1.0, 1.0
+        K, C, B = _chain(N, k, c)
         tr = _newmark(np.diag(m), K, C, B, u, n, dt, rng)
         basis = pod(tr.Qh, r)
         return _relation(basis.project(tr.Qh), dt, u, 1e-6, rng)

@@ -418,12 +418,8 @@ _KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"), 
                           unavailable="the compiled learned-mass interior point is unavailable")
 
 
-def kernels() -> dict:
-    """The compiled kernels (compiled, or loaded from numba's cache, on the first call)."""
-    return _KERNELS.kernels()
-
-
-def warm_up() -> float | None:
-    """Compile (or load from the cache) the kernels now; the seconds it took in this process
-    (0.0 when already done), or None when the JIT is unavailable or disabled."""
-    return _KERNELS.warm_up()
+#: the compiled kernels (compiled, or loaded from numba's cache, on the first call)
+kernels = _KERNELS.kernels
+#: compile (or load) the kernels now: the seconds it took in this process (0.0 when already
+#: done), or None when the JIT is unavailable or disabled
+warm_up = _KERNELS.warm_up
