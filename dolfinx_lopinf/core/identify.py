@@ -34,7 +34,8 @@ import scipy.optimize
 from . import schemes as S
 from ..errors import InputError
 from .holdout import prediction_error, split
-from .inference import MechanicalOperators, _serial_blas
+from ._blas import serial_blas
+from .gram import MechanicalOperators
 
 #: a refinement (or a less standard member) must lower the relative residual this much
 CLEAR_GAIN = 2.0
@@ -301,7 +302,7 @@ def _refinements(residual: Residual, rho: dict):
     return [(n,) + c for n, c in out if c is not None]
 
 
-@_serial_blas
+@serial_blas
 def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25,
              check_r: int | None = None):
     """The scheme whose relation the data obey, and whose recurrence predicts them, best

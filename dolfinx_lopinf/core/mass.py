@@ -45,6 +45,8 @@ import numpy as np
 import scipy.linalg
 
 from ._checks import check_matrix
+from .conic import clarabel
+from .gram import RANK_RTOL, MechanicalOperators, block_names, compress, psd_floor
 from .lsq.fractional import RHO, FractionalProblem, MassInteriorPoint
 from .lsq.linalg import sym
 from .lsq.problem import eliminate_free
@@ -68,20 +70,18 @@ def infer_with_mass(Qh, dQh, ddQh, U=None, *, damping: bool = True, eps: float =
         Qh, dQh, ddQh, U: (r, K) states and derivative data of one relation (and (m, K)
             inputs), as for :func:`~dolfinx_lopinf.core.inference.infer_mechanical`.
         damping: fit C (needs dQh); eps: eigenvalue floor of K and C (user units);
-        ridge, strict: as in :func:`~dolfinx_lopinf.core.inference.gram_data`; ``strict``
+        ridge, strict: as in :func:`~dolfinx_lopinf.core.gram.gram_data`; ``strict``
             also raises SolverFailedError when the fit is not certified.
         solver: ``"auto"`` (our interior point) or ``"cvxpy"`` (Clarabel, the reference).
         rho: the regularisation (module docstring); gap_tol: the certificate's tolerance;
         backend: the interior point's iteration, ``"numpy"``, ``"numba"`` or ``"auto"``.
 
     Returns:
-        :class:`~dolfinx_lopinf.core.inference.MechanicalOperators` with ``M`` set and a
+        :class:`~dolfinx_lopinf.core.gram.MechanicalOperators` with ``M`` set and a
         certificate: ``solver``, ``certified``, ``duality_gap`` (relative, of the regularised
         problem), ``misfit_gap`` (f against the unregularised minimum), ``iterations``,
         ``seconds``, ...
     """
-    from .inference import MechanicalOperators
-
     if solver not in ("auto", "cvxpy"):
         raise InputError(f"mass='learned' is solved by 'auto' (our interior point) or 'cvxpy' "
                          f"(Clarabel), not {solver!r}")
@@ -128,8 +128,6 @@ class Prepared:
 
     def operators(self, theta_S):
         """(M, K, C, B) in the user's coordinates from the solver's unknowns, floored."""
-        from .inference import _floor
-
         r = self.S.shape[0]
         theta = theta_S if self.recover is None else np.hstack([theta_S, self.recover(theta_S)])
         ops, start = {}, 0
@@ -139,9 +137,9 @@ class Prepared:
             start += width
         S = self.S
         back = lambda A: sym(S.T @ A @ S)  # noqa: E731
-        M = _floor(back(ops["M"]), 0.0)
-        K = _floor(back(ops["K"]), self.eps)
-        C = _floor(back(ops["C"]), self.eps) if "C" in ops else None
+        M = psd_floor(back(ops["M"]), 0.0)
+        K = psd_floor(back(ops["K"]), self.eps)
+        C = psd_floor(back(ops["C"]), self.eps) if "C" in ops else None
         B = -(S.T @ ops["B"]) if "B" in ops else None
         return M, K, C, B
 
@@ -183,8 +181,6 @@ class Prepared:
 def _covariances(Qh, ddQh, strict):
     """W (unit trace), the regularised W_reg = W + W_REG A (+ W_REG I / r) and A (unit
     trace): warning or error (strict) for directions the states do not visit."""
-    from .inference import RANK_RTOL
-
     r = Qh.shape[0]
     W = sym(Qh @ Qh.T) / np.sum(Qh**2)
     A = sym(ddQh @ ddQh.T) / np.sum(ddQh**2)
@@ -216,8 +212,6 @@ def _balanced(W_reg, A):
 def prepare(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict, rho) -> Prepared:
     """Check the data, pick the balanced coordinates, scale and compress the blocks, and set up
     the :class:`FractionalProblem` (B minimised out)."""
-    from .inference import _block_names, _compress
-
     Qh = check_matrix(Qh, "Qh")
     r, n_samples = Qh.shape
     ddQh = check_matrix(ddQh, "ddQh", rows=r, cols=n_samples)
@@ -248,10 +242,10 @@ def prepare(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict, rho) -> Prepared:
     if n_samples < p:
         raise InputError(f"{n_samples} snapshots cannot determine {p} unknowns per row; record "
                          "more time samples or lower r")
-    names = [f"ddQh[{i}]" for i in range(r)] + _block_names(r, m, damping)
+    names = [f"ddQh[{i}]" for i in range(r)] + block_names(r, m, damping)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedDataWarning)
-        L, _, cond, rank, _ = _compress(rows, np.zeros((0, n_samples)), names, ridge, False,
+        L, _, cond, rank, _ = compress(rows, np.zeros((0, n_samples)), names, ridge, False,
                                         "[ddQh; Qh; dQh; U]")
     if rank < p - r:  # r exact relations leave rank p - r: below it, entries are undetermined
         msg = (f"the data [ddQh; Qh; dQh; U] ({p} rows, row-normalised) have numerical rank "
@@ -320,21 +314,3 @@ def solve_cvxpy(problem: FractionalProblem, tau: float | None = None, rounds: in
         warnings.warn(f"learned-mass fit: Clarabel returned {prob.status}", SolverWarning, stacklevel=3)
     return out, info
 
-
-def clarabel(cp, prob, options=None) -> dict:
-    """Solve ``prob`` with Clarabel (its default tolerances unless ``options``) and read its own
-    primal and dual objectives: status, iterations, relative gap |p - d| / max(|p|, |d|)."""
-    from cvxpy.reductions.solvers.solver_inverse_data import SolverInverseData
-
-    try:
-        data, chain, inverse = prob.get_problem_data(cp.CLARABEL)
-        raw = chain.solver.solve_via_data(data, False, False, dict(options or {}))
-        inverse[-1] = SolverInverseData(inverse[-1], solver_options={})
-        prob.unpack_results(raw, chain, inverse)
-    except cp.error.SolverError as exc:
-        raise SolverFailedError(f"Clarabel failed: {exc}") from exc
-    if prob.status not in ("optimal", "optimal_inaccurate"):
-        raise SolverFailedError(f"Clarabel failed: status {prob.status}")
-    p, d = float(raw.obj_val), float(raw.obj_val_dual)
-    return {"status": str(raw.status), "iterations": int(raw.iterations),
-            "relative_gap": abs(p - d) / max(abs(p), abs(d), 1e-300)}

@@ -23,8 +23,8 @@ The remedies, in the order a call meets them:
   arrays equal to 1e-10 relative (arrays through 4 x 64 block sums of their entries: rounding
   differences between ranks, 1e-16 to 1e-13, never decide a verdict; a difference shows unless
   it cancels in every block statistic). On one rank the call costs nothing; on two it costs
-  one allgather of a few kB (17 us measured for a small one on a loaded 2-core machine,
-  against 0.4-1.3 ms for one time step of the smallest FOM in the tests).
+  one allgather of a few kB, small against one time step of even the smallest FOM in the
+  tests.
 * :func:`together` - around a region where a rank may raise alone (the time loop with its
   sinks and inputs, writing a file, the black-box probe steps). When an exception leaves the
   region on one rank, that rank asks on a private duplicate of the communicator whether every
@@ -32,15 +32,13 @@ The remedies, in the order a call meets them:
   seconds, default 60). If all did, the exception propagates on every rank as usual. If the
   others went on, they are inside a collective that cannot complete: the rank prints its
   traceback and the reason and aborts the job (``MPI_Abort``) - a loud end instead of a hang.
-  The region costs one ``Comm.Dup`` and ``Free`` (14 us measured on 2 ranks) and nothing per
-  step; the deadline is only ever waited for on the failure path.
+  The region costs one ``Comm.Dup`` and ``Free`` and nothing per step; the deadline is only ever waited for on the failure path.
 * The process-wide safety net, :mod:`dolfinx_lopinf._mpi_abort`: an exception left uncaught
   on one rank (anywhere in the user's program, e.g. ``lo.fit`` refusing one rank's data before
   a barrier) aborts the job after its traceback.
 
-Not done: a deadline on every *entry* (a timed barrier before each function). Measured, it
-would cost little (23 us against 17 us for the plain allgather on 2 ranks), but no deadline is
-safe there: ranks legitimately reach an entry minutes apart (rank 0 fitting a model alone
+Not done: a deadline on every *entry* (a timed barrier before each function). It would cost
+little (about what the plain allgather costs), but no deadline is safe there: ranks legitimately reach an entry minutes apart (rank 0 fitting a model alone
 while the others wait for the next call), so any default would abort correct programs. A
 rank that never reaches an entry because it raised is handled by :func:`together` and the
 safety net instead.

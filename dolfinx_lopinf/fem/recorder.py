@@ -39,7 +39,7 @@ import numpy as np
 from ._dolfinx import dolfinx
 from ..errors import InputError
 from .agreement import agree, arrive
-from .fom import StateMap, gather_states
+from .state import StateMap, gather_states
 from .lagrangian import _on_space
 from ..core.snapshots import Snapshots, check_scheme
 
@@ -273,10 +273,10 @@ class SnapshotRecorder:
 
     def sink(self, *, every: int = 1, until_step: int | None = None, velocity: bool = False,
              inputs=None):
-        """A sink of :func:`dolfinx_lopinf.fem.fom.run_loop`: :meth:`record` the integrator's
+        """A sink of :func:`dolfinx_lopinf.fem.loop.run_loop`: :meth:`record` the integrator's
         state (and ``velocity``, and ``inputs(t)`` if given) at every ``every``-th step up to
         ``until_step``. A recorder made without ``scheme`` takes the integrator's."""
-        from .fom import Every
+        from .loop import Every
 
         def record(s):
             if self.scheme is None:

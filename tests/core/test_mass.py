@@ -248,7 +248,7 @@ def test_compiled_iteration_is_the_numpy_iteration(backend):
 def test_held_out_style_sets_are_certified(kind, r):
     """The benchmark's learned-mass kinds (non-identity mass, POD coordinates with an
     ill-conditioned W, active K and C floors): certified to 1e-8 at every r."""
-    from dolfinx_lopinf.studies.benchmark_mass import mass_data
+    from dolfinx_lopinf.core.synthetic import mass_data
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
@@ -268,7 +268,7 @@ def test_rounding_does_not_decide_the_fit(kind, r):
     """Every input perturbed at 1e-15 relative (the rounding of another BLAS): still certified,
     the same iterations within a few, the dynamics M^-1 K, M^-1 C, M^-1 B to 1e-6 - on an
     ill-conditioned W (chainpod) and with floors active (active)."""
-    from dolfinx_lopinf.studies.benchmark_mass import mass_data
+    from dolfinx_lopinf.core.synthetic import mass_data
 
     data = mass_data(kind, r)
     rng = np.random.default_rng(7)

@@ -23,8 +23,9 @@ import ufl
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.fem import galerkin_nonlinear as gn
 from dolfinx_lopinf.fem import probes
-from dolfinx_lopinf.fem.fom import OutputProbe, point_output_matrix
-from dolfinx_lopinf.fem.integrators import NewmarkIntegrator
+from dolfinx_lopinf.fem.loop import OutputProbe
+from dolfinx_lopinf.fem.state import point_output_matrix
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator
 from dolfinx_lopinf.fem.intrusive import reduced_matrix
 from dolfinx_lopinf.fem.streaming import StreamingPOD
 

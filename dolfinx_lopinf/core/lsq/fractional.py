@@ -345,8 +345,8 @@ class MassInteriorPoint:
         run = _run_numpy
         if backend == "numba":
             try:
-                from . import _fractional_compiled
-                run = _fractional_compiled.run
+                from . import _fractional_compiled  # noqa: F401 - is it there?
+                run = _run_compiled
             except ImportError:  # not built yet
                 backend = "numpy"
         xs, Y, tau, it, best, stopped, trace = run(problem, xs, self.gap_tol, self.max_iter)
@@ -397,6 +397,55 @@ def _run_numpy(problem, xs, gap_tol, max_iter):
     if best_state is None:
         best = problem.certify(state.xs, state.Y, state.tau)
         best_state = (state.xs, state.Y, state.tau)
+    return (*best_state[:2], best_state[2], it, best, stopped, trace)
+
+
+def _run_compiled(problem, xs, gap_tol, max_iter):
+    """:func:`_run_numpy` with the compiled step and estimate (:mod:`._fractional_compiled`)."""
+    from . import _fractional_compiled
+
+    K = _fractional_compiled.kernels()
+    ix = problem.index
+    st = _State.initial(problem, xs)
+    xs = np.ascontiguousarray(st.xs, dtype=float)
+    Y = np.ascontiguousarray(st.Y)
+    Om = np.ascontiguousarray(st.Om)
+    Lam = np.ascontiguousarray(st.Lam)
+    state = np.array([st.nu, st.tau, 0.0, 0.0, 0.0])
+    L = np.ascontiguousarray(problem.L)
+    a = np.ascontiguousarray(problem.a)
+    xf = np.ascontiguousarray(problem.x_floor)
+    full = np.array(ix.full, dtype=np.int64)  # writable copies: the signatures' arrays
+    iu0 = np.array(ix.iu[0], dtype=np.int64)
+    iu1 = np.array(ix.iu[1], dtype=np.int64)
+    Dw = np.ascontiguousarray(ix.Dw[:ix.nv])
+    r, b = problem.r, problem.n_blocks
+    f_floor = problem.tau_of(0.0) * r / problem.rho  # tau's floor (F_FLOOR f_scale)
+    gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
+    best, best_state, trace, stopped = None, None, [], "max_iter"
+    it = 0
+    for it in range(1, max_iter + 1):
+        K["_step"](xs, Y, Om, Lam, state, L, a, xf, full, iu0, iu1, Dw, r, b, problem.rho, f_floor)
+        if state[4] or not np.isfinite(state[2]):
+            stopped = f"numerical failure at iteration {it}: Schur matrix not positive definite"
+            it -= 1
+            break
+        est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, gap_floor)
+        trace.append((float(state[2]), float(state[3]), float(est)))
+        stalled = _stalled(trace, est, gap_tol)
+        if est <= CERTIFY_AT * gap_tol or stalled:
+            c = problem.certify(xs, Y, state[1])
+            if best is None or c["duality_gap"] < best["duality_gap"]:
+                best, best_state = c, (xs.copy(), Y.copy(), float(state[1]))
+            if c["duality_gap"] <= gap_tol:
+                stopped = "certified"
+                break
+            if stalled:
+                stopped = f"stalled at iteration {it}"
+                break
+    if best_state is None:
+        best = problem.certify(xs, Y, state[1])
+        best_state = (xs, Y, float(state[1]))
     return (*best_state[:2], best_state[2], it, best, stopped, trace)
 
 
