@@ -43,7 +43,8 @@ from .basis import Basis, from_svd, pod
 from ._checks import as_real_array
 from ..errors import FileFormatError, InputError, SchemeMismatchWarning, warn
 from .identify import Residual, identify, standard_members
-from .inference import RIDGE, infer_mechanical, infer_output, _serial_blas
+from ._blas import serial_blas
+from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
 from .rom import LagrangianROM, Trajectory, load_rom, save_rom
 from .snapshots import Snapshots, check_scheme
@@ -315,7 +316,7 @@ def _label(mass, damping, rel):
     return f"{mass}/{'damped' if damping else 'undamped'}/{rel.spec}"
 
 
-@_serial_blas  # small kernels: BLAS threads cost more than they give, and far more on a busy machine
+@serial_blas  # small kernels: BLAS threads cost more than they give, and far more on a busy machine
 def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         basis: Basis | None = None, eps: float = 1e-8, ridge: float = RIDGE,
         strict: bool = False, holdout: float = 0.25) -> ReducedModel:
