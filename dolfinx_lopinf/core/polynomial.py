@@ -21,7 +21,7 @@ squares. Its constraints (``constraint=``), all convex:
 * ``"quartic"``: also U4(q) = 1/2 z^T P z with z = vech(q q^T) (monomials q_i q_j, i <= j) and
   P >= 0, so the quartic part is a sum of squares (>= 0);
 * ``"sos"`` (default): U(q) = m^T G m with m = [q; z] and G >= eps_g I (a Gram matrix: K = 2 G11,
-  the cubic terms from G12, the quartic from G22). Then U(q) >= eps_g (|q|^2 + |z|^2) for every
+  the cubic terms from G12, the quartic from G22). Then ``U(q) >= eps_g (|q|^2 + |z|^2)`` for every
   q: the potential is bounded below *and coercive*, so every unforced (damped or not) ROM
   trajectory stays in the bounded set {U <= E(0)}. The SVK reduced potential has exactly this
   form (W is a positive combination of squares of the entries of E, each linear + quadratic in
@@ -44,7 +44,7 @@ number of snapshots); the certificate holds Clarabel's primal and dual objective
 :class:`PolynomialROM` integrates qh with the midpoint VI (``scheme="midpoint"``, the FOM's
 scheme: symplectic, bounded energy error) or with the average-vector-field discrete gradient
 (``scheme="avf"``: grad U replaced by the exact integral of grad U over the segment [q0, q1],
-two-point Gauss-Legendre is exact for a quartic U; the energy 1/2 |p|^2 + U(q) of the
+two-point Gauss-Legendre is exact for a quartic U; the energy ``1/2 |p|^2 + U(q)`` of the
 conservative system is then conserved to the Newton tolerance). Each step is a reduced Newton
 solve. :class:`PolynomialForce` is the unconstrained baseline (independent polynomial force
 coefficients, no potential).
@@ -858,14 +858,16 @@ class PolynomialROM:
         (:class:`~dolfinx_lopinf.core.rom.Trajectory`).
 
         Each step solves, for d = q1 - q0 (reduced Newton until the residual is below ``tol``
-        times the size of its terms),
+        times the size of its terms)::
+
             d/dt + C d/2 + dt/2 g(q0, q1) = p0 + dt/2 B u_{k+1/2},
             p1 = d/dt - C d/2 - dt/2 g(q0, q1) + dt/2 B u_{k+1/2},
+
         with g = f((q0+q1)/2) (midpoint) or the two-point Gauss average of f on [q0, q1] (AVF).
         A Newton correction below NEWTON_STALL (16 eps) times the state also ends the
         iteration (full Newton, both loops): the residual test alone, at tol = 1e-13, let the
         force's rounding decide whether a step converged. ``atol`` (default 0) is added to the
-        stopping test, |R| <= tol size + atol: the rounding floor of a force that is not
+        stopping test, ``|R| <= tol size + atol``: the rounding floor of a force that is not
         evaluated to machine precision relative to its own size (a DOLFINx-assembled force
         near rest sums cell terms that cancel).
 
@@ -881,7 +883,7 @@ class PolynomialROM:
                 the trajectory up to it, NaN after (``trajectory.stable`` False).
             jacobian: ``"fresh"`` (Newton) or ``"lazy"`` (simplified Newton, numpy loop only:
                 the last factorised Newton matrix is kept, across steps too, and formed afresh
-                when convergence slows, |delta_k| > 0.1 |delta_(k-1)|; it pays when the
+                when convergence slows, ``|delta_k| > 0.1 |delta_(k-1)|``; it pays when the
                 Jacobian costs far more than the force, e.g. the FOM-assembled Galerkin force).
             backend: ``"numpy"`` (the reference loop, any model), ``"numba"`` (the compiled
                 loop for a :class:`PolynomialPotential` or :class:`PolynomialForce`, equal to

@@ -1,11 +1,14 @@
 """Figures: pyvista off-screen field renders and matplotlib curves.
 
 pyvista and matplotlib are imported lazily, so the numpy core never needs them.
-Every function writes one PNG and returns its path.
+Every function writes one PNG and returns its path. Every curve figure has a title saying
+what is plotted and labelled axes; its legend sits beside the axes, never over the data, and
+long titles are wrapped rather than cut.
 """
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -29,16 +32,26 @@ def _pyplot():
     return plt
 
 
+#: where a legend goes: beside the axes (upper left corner just right of them), so it never
+#: covers a curve; ``savefig(bbox_inches="tight")`` keeps it in the picture
+BESIDE = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}
+
+
+def _wrap(title: str, width: int = 70) -> str:
+    """A long title on several lines instead of cut at the figure's edge."""
+    return "\n".join(textwrap.fill(line, width) for line in str(title).split("\n"))
+
+
 def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict | None = None) -> Path:
-    """Label, grid, legend (``legend``: extra ``ax.legend`` arguments, e.g. a place outside
-    the axes), save and close a one-axis matplotlib figure."""
+    """Label, grid, legend (beside the axes unless ``legend`` - extra ``ax.legend``
+    arguments - says otherwise), save and close a one-axis matplotlib figure."""
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    ax.set_title(_wrap(title))
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, **(legend or {}))
+    ax.legend(fontsize=8, **(BESIDE | (legend or {})))
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
     import matplotlib.pyplot as plt
 
     plt.close(fig)
@@ -99,11 +112,16 @@ def beam_shapes(path, x: np.ndarray, shapes: dict, times: list, *, title: str = 
     return path
 
 
-def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
-    """Relative state error (train solid, test dashed) against r for every method, with the
-    test-window projection error as the floor."""
+def error_vs_r(path, rows: list[dict], *, title: str = "",
+               series=(("train_error", "train"), ("test_error", "test")),
+               floors=(("projection_error_test", "projection (test)"),),
+               ylabel: str = "relative state error") -> Path:
+    """Relative error against r for every method: ``series`` are (row key, label) pairs drawn
+    solid, dashed, dash-dotted, ... (default: the training and test errors), ``floors`` the
+    projection errors of the L-OpInf rows (dotted, black and grey) - what no ROM in this basis
+    can beat."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    fig, ax = plt.subplots(figsize=(7.6, 4.4))
     # distinct markers so coinciding curves stay visible (L-OpInf: large hollow markers)
     styles = {"intrusive": ("intrusive", "C2", "^", 5, None),
               "opinf": ("standard OpInf", "C3", "x", 7, None),
@@ -112,19 +130,23 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
               "lopinf_del": ("L-OpInf, DEL data", "C4", "s", 8, "none"),
               "lopinf_fd": ("L-OpInf, finite differences", "C5", "v", 7, "none"),
               "lopinf_mass_I": ("L-OpInf, Mh = I", "C6", "P", 7, "none")}
+    lines = ["-", "--", "-.", (0, (1, 1))]
     for method, (label, color, marker, size, face) in styles.items():
         sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
         if not sel:
             continue
         rs = [r["r"] for r in sel]
         kw = dict(color=color, marker=marker, markersize=size, markerfacecolor=face)
-        ax.semilogy(rs, [min(r["train_error"], 1e3) for r in sel], "-", label=f"{label} train", **kw)
-        ax.semilogy(rs, [min(r["test_error"], 1e3) for r in sel], "--", label=f"{label} test", **kw)
+        for i, (key, name) in enumerate(series):
+            ax.semilogy(rs, [min(r[key], 1e3) for r in sel], linestyle=lines[i % len(lines)],
+                        label=f"{label}, {name}", **kw)
     sel = sorted((r for r in rows if r["method"] == "lopinf"), key=lambda r: r["r"])
-    ax.semilogy([r["r"] for r in sel], [r["projection_error_test"] for r in sel], "k:", label="projection (test)")
-    ax.legend(fontsize=7, ncol=2)
-    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel="relative state error",
-                   title=title)
+    for i, (key, name) in enumerate(floors):
+        if sel and all(key in r for r in sel):
+            ax.semilogy([r["r"] for r in sel], [r[key] for r in sel], ":", color=("k", "0.55")[i % 2],
+                        lw=1.6, label=name)
+    ax.set_xticks(sorted({r["r"] for r in rows}))
+    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel=ylabel, title=title)
 
 
 def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
@@ -160,11 +182,11 @@ def wave_shapes(path, x: np.ndarray, series: dict, *, title: str = "") -> Path:
                     ls="-" if i == 0 else "--", label=label.rsplit(" t=", 1)[0])
         ax.set_ylabel(f"q(x, {t})")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    axes[0].set_title(title)
+    axes[0].legend(fontsize=8, **BESIDE)
+    axes[0].set_title(_wrap(title))
     axes[-1].set_xlabel("x")
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
 
@@ -295,9 +317,9 @@ def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, y
         if vline is not None:
             ax.axvline(vline, color="k", ls=":", lw=1)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    axes[0].set_title(title + ("  (dotted: end of training)" if vline is not None else ""))
+        ax.legend(fontsize=8, **BESIDE)
+    axes[0].set_title(_wrap(title + ("  (dotted: end of training)" if vline is not None else "")))
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
