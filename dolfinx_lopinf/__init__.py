@@ -8,11 +8,11 @@ The front door - the one-call path, fifteen names::
     lo.write_vtx("rom.bp", V, model.reconstruct(traj.Qh), traj.times)
 
 ``fit``, ``ReducedModel``, ``Snapshots``, ``pod``, ``relative_error``, ``schemes`` (the time
-integrators as objects), ``errors`` and ``core`` (every step of the pipeline, numpy only:
-``core.infer_mechanical``, ``core.LagrangianROM``, ...) import without DOLFINx;
-``SnapshotRecorder``, ``LagrangianSystem``, ``run``, ``write_vtx``, ``point_output_matrix``,
-``DerivedOutput`` and ``fem`` (the DOLFINx layer: integrators, state maps, probes, Galerkin
-projection) are loaded on first use.
+integrators as objects), ``errors``, ``core`` (every step of the pipeline, numpy only:
+``core.infer_mechanical``, ``core.LagrangianROM``, ...) and ``parametric`` (one model for a
+family of designs) import without DOLFINx; ``SnapshotRecorder``, ``LagrangianSystem``,
+``run``, ``write_vtx``, ``point_output_matrix`` and ``fem`` (the DOLFINx layer: integrators,
+state maps, probes, derived outputs, Galerkin projection) are loaded on first use.
 """
 
 import importlib.util as _ilu
@@ -22,7 +22,7 @@ if _ilu.find_spec("dolfinx_solver") is not None:
     # lets users write `import dolfinx_lopinf` then `import dolfinx` in their own code.
     import dolfinx_solver  # noqa: F401
 
-from . import _mpi_abort, core, errors
+from . import _mpi_abort, core, errors, parametric
 from .core import schemes
 from .core.basis import pod
 from .core.fit import ReducedModel, fit
@@ -41,7 +41,6 @@ _LAZY = {
     "run": "fem.fom",
     "write_vtx": "fem.vtx",
     "point_output_matrix": "fem.fom",
-    "DerivedOutput": "fem.derived",
 }
 
 
@@ -57,4 +56,4 @@ def __getattr__(name):
 
 
 __all__ = ["fit", "ReducedModel", "Snapshots", "pod", "relative_error", "schemes", "errors",
-           "core", "fem", *_LAZY]
+           "core", "fem", "parametric", *_LAZY]

@@ -33,6 +33,16 @@ class RankDeficientDataError(InputError):
     row is identically zero)."""
 
 
+class NonAffineParameterError(InputError):
+    """A parameter enters a form non-affinely (its second derivative is not zero), so the
+    form is not a sum theta_i(mu) L_i in it; the message names the parameter and the form.
+    Attributes ``parameter`` and ``operator`` say which."""
+
+    def __init__(self, message: str, parameter: str = "", operator: str = ""):
+        super().__init__(message)
+        self.parameter, self.operator = parameter, operator
+
+
 class FileFormatError(LOpInfError, OSError):
     """A file is not one of ours, is truncated or corrupt, or lacks a required entry."""
 
@@ -97,6 +107,11 @@ class SchemeMismatchWarning(LOpInfWarning):
 class InputCorrectedWarning(LOpInfWarning):
     """An input was made consistent rather than refused (e.g. an initial state moved onto its
     Dirichlet conditions); the message says what changed and by how much."""
+
+
+class ParameterRangeWarning(LOpInfWarning):
+    """A parametric reduced model predicts at a parameter outside the range it was trained
+    on: its stability is still certified (inside the cone), its accuracy is not."""
 
 
 def warn(message: str, category: type[Warning]) -> None:

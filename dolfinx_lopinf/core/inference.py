@@ -357,7 +357,7 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
     """
     _check_solver(solver)
     if not (np.isfinite(eps) and eps >= 0):
-        raise ValueError(f"eps must be a finite number >= 0, got {eps}")
+        raise InputError(f"eps must be a finite number >= 0, got {eps}")
     if mass not in ("identity", "learned"):
         raise InputError(f"mass must be 'identity' or 'learned', got {mass!r}")
     (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)

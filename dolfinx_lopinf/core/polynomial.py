@@ -63,7 +63,8 @@ from math import comb
 import numpy as np
 import scipy.linalg
 
-from ..errors import InputError, NonLagrangianWarning, SolverWarning, StepFailedError
+from ..errors import (InputError, NonLagrangianWarning, SolverFailedError, SolverWarning,
+                      StepFailedError)
 from ._checks import as_real_array, check_matrix, check_positive
 from .compiled import NEWTON_STALL
 
@@ -680,7 +681,7 @@ def _clarabel(cp, prob) -> dict:
     prob.unpack_results(raw, chain, inverse)
     seconds = time.perf_counter() - t0
     if prob.status not in ("optimal", "optimal_inaccurate"):
-        raise RuntimeError(f"Clarabel failed on the polynomial L-OpInf problem: status {prob.status}")
+        raise SolverFailedError(f"Clarabel failed on the polynomial L-OpInf problem: status {prob.status}")
     gap = abs(raw.obj_val - raw.obj_val_dual)
     if prob.status != "optimal" and gap > 1e-6 * max(abs(raw.obj_val), 1e-300) + 1e-10:
         warnings.warn(f"Clarabel returned {prob.status} with duality gap {gap:.2e}; see the "

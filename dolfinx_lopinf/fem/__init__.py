@@ -1,7 +1,9 @@
 """The DOLFINx layer: a UFL Lagrangian -> forms, integrators and the one time loop (``run``),
 recording from your own loop (``SnapshotRecorder``) and state maps, point outputs and derived
 outputs (UFL expressions of the reconstructed field), intrusive projection, the gray-box
-nonlinearity, streaming POD, probes, VTX output. Importing it imports DOLFINx."""
+nonlinearity, streaming POD, probes, VTX output; the affine parameter structure of a UFL
+Lagrangian (``affine``) and the FOM at any parameter (``param_fom``). Importing it imports
+DOLFINx."""
 
 from .derived import DerivedOutput
 from .fom import StateMap, output_matrix_in_state, point_output_matrix, run

@@ -23,8 +23,8 @@ from typing import Callable
 import numpy as np
 
 from ._dolfinx import dolfinx, ufl
-from ..errors import InputError
 from ufl.corealg.traversal import unique_pre_traversal
+from ..errors import InputError
 
 _UNARY = {"Cos": np.cos, "Sin": np.sin, "Exp": np.exp, "Ln": np.log, "Sqrt": np.sqrt,
           "Abs": np.abs, "Cosh": np.cosh, "Sinh": np.sinh, "Tanh": np.tanh, "Atan": np.arctan}
@@ -135,10 +135,10 @@ def identify(system) -> PointwiseNonlinearity:
             found.append(-term)
             measures.append(form.integrals()[0])
     if not found:
-        raise ValueError("the Lagrangian is quadratic: there is no nonlinear potential to identify")
+        raise InputError("the Lagrangian is quadratic: there is no nonlinear potential to identify")
     metas = {str(m.metadata()) for m in measures}
     if len(metas) != 1:
-        raise ValueError("the non-quadratic terms use different measures; integrate them alike")
+        raise InputError("the non-quadratic terms use different measures; integrate them alike")
     density = found[0]
     for t in found[1:]:
         density = density + t
@@ -166,7 +166,7 @@ def _check_pointwise(system, nl, density, integral):
     off.setDiagonal(diag * 0.0)
     off_norm, m_norm = off.norm(PETSc.NormType.FROBENIUS), M.norm(PETSc.NormType.FROBENIUS)
     if off_norm > 1e-12 * m_norm:
-        raise ValueError(
+        raise InputError(
             "the mass matrix is not diagonal, so f_nl = M^-1 grad U is not pointwise; integrate "
             "the kinetic term and the potential with vertex quadrature (ufl.dx(metadata="
             "{'quadrature_rule': 'vertex', 'quadrature_degree': 1}))")
@@ -187,7 +187,7 @@ def _check_pointwise(system, nl, density, integral):
     err = comm.allreduce(np.abs(lhs - rhs).max(initial=0.0), op=__import__("mpi4py").MPI.MAX) / \
         max(comm.allreduce(np.abs(rhs).max(initial=0.0), op=__import__("mpi4py").MPI.MAX), 1e-300)
     if err > 1e-10:
-        raise ValueError(
+        raise InputError(
             f"the nonlinear force is not pointwise for this discretisation (M^-1 grad U vs g(q): "
             f"relative mismatch {err:.1e}); integrate the potential with the same vertex "
             "quadrature as the kinetic term")

@@ -22,6 +22,7 @@ import numpy as np
 from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
 from ..fem.fom import StateMap, point_output_matrix
 from ..fem.lagrangian import LagrangianSystem
+from ..errors import InputError
 
 LENGTH = 1.0  # m
 MU = 6.28e-3  # kg/m
@@ -88,7 +89,7 @@ def _hermite_nodes(V):
         for local_vertex, xv in ((0, x0), (1, x1)):
             vd, sd = dofs[2 * local_vertex], dofs[2 * local_vertex + 1]
             if sd in jac and not np.isclose(jac[sd], J, rtol=1e-10, atol=0):
-                raise ValueError(
+                raise InputError(
                     f"Hermite derivative dof at x = {xv:.6g} is shared by cells of different "
                     f"length/orientation (J = {jac[sd]:.6g} vs {J:.6g}): on such a mesh the "
                     "derivative dofs do not represent one slope. Use a uniform mesh."
@@ -105,7 +106,7 @@ def build(n_nodes: int = 200, comm=MPI.COMM_WORLD, *, length: float = LENGTH, mu
     import basix.ufl
 
     if n_nodes < 3:
-        raise ValueError("the beam needs at least 3 nodes")
+        raise InputError("the beam needs at least 3 nodes")
     msh = dolfinx.mesh.create_interval(comm, n_nodes - 1, [0.0, length])
     V = dolfinx.fem.functionspace(msh, basix.ufl.element(basix.ElementFamily.Hermite, "interval", 3))
     w, w_t = dolfinx.fem.Function(V, name="w"), dolfinx.fem.Function(V, name="w_t")

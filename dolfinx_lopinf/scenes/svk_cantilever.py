@@ -40,6 +40,7 @@ import numpy as np
 from ..fem._dolfinx import MPI, dolfinx, ufl
 from ..fem.fom import StateMap, point_output_matrix
 from ..fem.lagrangian import LagrangianSystem
+from ..errors import InputError
 
 LENGTH, WIDTH, HEIGHT = 1.0, 0.1, 0.1
 E_MOD, NU, RHO = 1.0e5, 0.3, 1.0
@@ -82,7 +83,7 @@ def strain_energy_density(u, material: str):
     if material == "neo-hookean":
         J = ufl.det(F)
         return 0.5 * MU * (ufl.tr(F.T * F) - d) - MU * ufl.ln(J) + 0.5 * LAMBDA * ufl.ln(J) ** 2
-    raise ValueError(f"material must be one of {MATERIALS}, got {material!r}")
+    raise InputError(f"material must be one of {MATERIALS}, got {material!r}")
 
 
 @dataclass

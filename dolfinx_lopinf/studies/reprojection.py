@@ -59,7 +59,8 @@ def main(argv=None):
     data, from re-projected data, from discrete Euler-Lagrange data; intrusive; projection."""
     import warnings
 
-    from .. import LagrangianROM, derivatives, infer_mechanical, pod, relative_error, run
+    from .. import run
+    from ..core import LagrangianROM, derivatives, infer_mechanical, pod, relative_error
     from ..core.ddt import variational_data
     from ..fem.intrusive import dense_state_matrix
     from ..scenes import beam as scene

@@ -120,7 +120,7 @@ def main(argv=None):
 
 def _step_case():
     from ..scenes import cantilever
-    from .. import LagrangianROM, derivatives, infer_mechanical, infer_output, pod, relative_error
+    from ..core import LagrangianROM, derivatives, infer_mechanical, infer_output, pod, relative_error
     from .. import SnapshotRecorder, point_output_matrix
 
     def hard_step(t):
@@ -156,7 +156,7 @@ def _large_dt_case():
 def _rank_deficient_case():
     """Exactly dependent rows: by default a warning naming the rank and a ridge-regularised fit
     (symmetric, >= eps I, fitting what the data determine); with strict=True a clear error."""
-    from .. import derivatives, infer_mechanical
+    from ..core import derivatives, infer_mechanical
     from ..errors import IllConditionedDataWarning, RankDeficientDataError
 
     t = np.linspace(0, 1, 200)

@@ -323,3 +323,97 @@ def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, y
     fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
+
+
+#: the parametric demos' methods: label, colour, marker
+PARAM_STYLES = {"lopinf": ("parametric L-OpInf", "C0", "o"),
+                "intrusive": ("intrusive parametric Galerkin", "C2", "^"),
+                "opinf": ("opinf parametric (peer)", "C3", "x"),
+                "projection": ("projection floor", "k", ".")}
+
+
+def error_vs_parameter(path, rows: list[dict], *, index: int = 0, name: str = "mu",
+                       train_values=None, title: str = "", select=None, labels=None) -> Path:
+    """Test error against one parameter (``index`` of mu), one panel per r, one line per
+    method (:data:`PARAM_STYLES`); the training values marked, the training range shaded.
+    ``select(row)``: which rows (e.g. those on one line through a 2-D parameter box);
+    ``labels``: method -> legend text, replacing :data:`PARAM_STYLES`' labels."""
+    plt = _pyplot()
+    rows = [r for r in rows if (select is None or select(r))]
+    r_values = sorted({r["r"] for r in rows})
+    fig, axes = plt.subplots(1, len(r_values), figsize=(4.6 * len(r_values), 3.9), squeeze=False,
+                             sharey=True)
+    for ax, rv in zip(axes[0], r_values):
+        for method, (label, color, marker) in PARAM_STYLES.items():
+            sel = sorted((r for r in rows if r["r"] == rv and r["method"] == method),
+                         key=lambda r: r["mu"][index])
+            if not sel:
+                continue
+            label = (labels or {}).get(method, label)
+            if any("note" in r for r in sel):
+                label = "intrusive Galerkin, assembled at each mu"
+            x = [r["mu"][index] for r in sel]
+            y = [min(r["test_error"], 1e3) for r in sel]
+            ls = ":" if method == "projection" else "-"
+            ax.semilogy(x, y, ls, color=color, marker=marker, label=label,
+                        markerfacecolor="none" if method == "lopinf" else None, markersize=8)
+            bad = [(xi, yi) for xi, yi, r in zip(x, y, sel) if not r["stable"]]
+            if bad:
+                ax.plot(*zip(*bad), "s", color="red", markersize=11, markerfacecolor="none")
+        if train_values is not None:
+            tv = np.asarray(train_values, dtype=float)
+            ax.axvspan(tv.min(), tv.max(), color="C0", alpha=0.06, label="training range")
+            for v in tv:
+                ax.axvline(v, color="C0", lw=0.6, alpha=0.4)
+        ax.set_title(f"r = {rv}")
+        ax.set_xlabel(name)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0][0].set_ylabel("relative state error (test input)")
+    axes[0][-1].legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+    return Path(path)
+
+
+def scalar_fields(path, grid, frames: list[dict], *, titles=None, warp: float | None = None,
+                  clim=None, title: str | None = None, panel=(330, 300), overlay=None) -> Path:
+    """2D scalar fields (membrane displacement) as coloured, optionally warped surfaces: one
+    row per frame, one column per label (e.g. FOM | L-OpInf | |error|). A label starting
+    with '|' gets its own colour range (an error), the others share one (symmetric).
+    ``overlay``: (k, 2) points of an outline drawn on the flat panels (an inclusion)."""
+    pv = _pyvista()
+    labels = list(frames[0])
+    plotter = pv.Plotter(shape=(len(frames), len(labels)), off_screen=True,
+                         window_size=(panel[0] * len(labels), panel[1] * len(frames)), border=False)
+    top = max(np.abs(v).max() for f in frames for k, v in f.items() if not k.startswith("|"))
+    clim = clim or (-top, top)
+    etop = max([np.abs(v).max() for f in frames for k, v in f.items() if k.startswith("|")] or [1])
+    for i, frame in enumerate(frames):
+        for j, label in enumerate(labels):
+            plotter.subplot(i, j)
+            g = grid.copy()
+            err = label.startswith("|")
+            g.point_data["u"] = frame[label]
+            shown = g.warp_by_scalar("u", factor=warp * 0.25 / top) if warp and not err else g
+            plotter.add_mesh(shown, scalars="u", cmap="magma" if err else "RdBu_r",
+                             clim=(0, etop) if err else clim, show_scalar_bar=(j == len(labels) - 1 or
+                                                                               (err and i == 0)),
+                             scalar_bar_args={"title": "error" if err else "q", "vertical": True,
+                                              "position_x": 0.8, "height": 0.6, "fmt": "%.1e",
+                                              "label_font_size": 10, "title_font_size": 11})
+            if overlay is not None and not (warp and not err):  # on the flat panels
+                plotter.add_mesh(pv.lines_from_points(np.column_stack(
+                    [overlay[:, 0], overlay[:, 1], np.full(len(overlay), 1e-3)])), color="w",
+                    line_width=2)
+            text = label if titles is None else f"{label}  {titles[i]}"
+            plotter.add_text(text, font_size=8, position="upper_left")
+            if title and i == len(frames) - 1 and j == 0:
+                plotter.add_text(title, font_size=7, position="lower_left")
+            plotter.view_isometric() if warp and not err else plotter.view_xy()
+    path = Path(path)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path

@@ -51,7 +51,7 @@ def recorded():
 def test_von_mises_at_points_from_states_and_reduced(recorded):
     u, rec, snaps, coeffs = recorded
     pts = [[0.33, 0.71], [0.9, 0.1], [0.5, 0.5]]
-    probe = lo.DerivedOutput(_von_mises(u), u, points=pts)
+    probe = lo.fem.DerivedOutput(_von_mises(u), u, points=pts)
     got = probe.from_states(snaps.Q)
     want = np.array([_affine(c)[1] for c in coeffs])
     assert got.shape == (3, 3)
@@ -59,7 +59,7 @@ def test_von_mises_at_points_from_states_and_reduced(recorded):
     basis = lo.pod(snaps.Q, 3)
     np.testing.assert_allclose(probe.from_reduced(basis, basis.project(snaps.Q)), got, rtol=1e-9)
     # the stress tensor itself: (p, 2, 2, K)
-    sig = lo.DerivedOutput(_sigma(u), u, points=pts[:1]).from_states(snaps.Q)
+    sig = lo.fem.DerivedOutput(_sigma(u), u, points=pts[:1]).from_states(snaps.Q)
     assert sig.shape == (1, 2, 2, 3)
     np.testing.assert_allclose(sig[0, :, :, 2], _affine(coeffs[2])[2], rtol=1e-10)
     # only the rows of the points' cells are reconstructed
@@ -69,7 +69,7 @@ def test_von_mises_at_points_from_states_and_reduced(recorded):
 def test_von_mises_as_a_field(recorded):
     u, rec, snaps, coeffs = recorded
     W = dolfinx.fem.functionspace(u.function_space.mesh, ("DG", 0))
-    field = lo.DerivedOutput(_von_mises(u), u, space=W).from_states(snaps.Q)
+    field = lo.fem.DerivedOutput(_von_mises(u), u, space=W).from_states(snaps.Q)
     if MPI.COMM_WORLD.rank == 0:
         assert field.shape == (W.dofmap.index_map.size_global, 3)
         np.testing.assert_allclose(field[:, 1], _affine(coeffs[1])[1], rtol=1e-10)
@@ -78,13 +78,13 @@ def test_von_mises_as_a_field(recorded):
 def test_bad_arguments_are_named(recorded):
     u, rec, snaps, _ = recorded
     with pytest.raises(InputError, match="exactly one of points"):
-        lo.DerivedOutput(_von_mises(u), u)
+        lo.fem.DerivedOutput(_von_mises(u), u)
     with pytest.raises(InputError, match="all of one length"):
-        lo.DerivedOutput(_von_mises(u), u, points=[[0.5, 0.5], [0.1, 0.2, 0.0]])
+        lo.fem.DerivedOutput(_von_mises(u), u, points=[[0.5, 0.5], [0.1, 0.2, 0.0]])
     with pytest.raises(InputError, match="outside the mesh"):
-        lo.DerivedOutput(_von_mises(u), u, points=[[2.0, 0.5]])
+        lo.fem.DerivedOutput(_von_mises(u), u, points=[[2.0, 0.5]])
     with pytest.raises(InputError, match="must be the dolfinx Function"):
-        lo.DerivedOutput(_von_mises(u), snaps.Q, points=[[0.5, 0.5]])
-    probe = lo.DerivedOutput(_von_mises(u), u, points=[[0.5, 0.5]])
+        lo.fem.DerivedOutput(_von_mises(u), snaps.Q, points=[[0.5, 0.5]])
+    probe = lo.fem.DerivedOutput(_von_mises(u), u, points=[[0.5, 0.5]])
     with pytest.raises(InputError, match="rows"):
         probe.from_states(snaps.Q[:-1])

@@ -99,7 +99,7 @@ def test_galerkin_rom_of_svk_equals_its_polynomial_tensors():
     b = pl.PolynomialROM(pot).simulate(q0, np.zeros(r), 1e-3, 40, tol=1e-11, backend="numpy")
     assert a.stable and b.stable and a.backend == "numpy"
     assert np.abs(a.Qh - b.Qh).max() <= 1e-8 * np.abs(b.Qh).max()
-    assert np.abs(a.energy - b.energy).max() <= 1e-8 * np.abs(b.energy).max()
+    assert np.abs(a.info["energy"] - b.info["energy"]).max() <= 1e-8 * np.abs(b.info["energy"]).max()
 
 
 def test_bad_inputs_are_named(setup):

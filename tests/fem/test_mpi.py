@@ -73,7 +73,8 @@ def _error_tolerance(row, singular_values, data_difference):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code", "fishtail"])
+@pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code", "fishtail",
+                                  "parametric_membrane", "parametric_cantilever"])
 def test_quick_demos_two_ranks_equal_serial(demo, tmp_path, quick_demo, mpiexec):
     """Every demo runs under mpiexec -n 2 and reports the serial ROM errors, within what
     the rounding of its FOM data can move them (see ``_error_tolerance``). The serial run is

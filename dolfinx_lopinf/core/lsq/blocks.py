@@ -15,6 +15,7 @@ from .face import FaceADMM, FaceNewton
 from .ipm import InteriorPoint, interior_point, ip_answer
 from .lyapunov import EigenbasisADMM, Lyapunov
 from .problem import Problem, Strategy, symmetric_answer, symmetric_start
+from ...errors import InputError
 
 
 #: :class:`Auto` tries the interior point on the active blocks alone from this r on
@@ -43,7 +44,7 @@ class PSDBlocks(Strategy):
                  ipm_max_iter: int = 40, eliminate: bool = True, backend: str = "auto",
                  resolve: bool = False):
         if method not in ("auto", "admm"):
-            raise ValueError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
+            raise InputError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
                              f"not {method!r}")
         self.method, self.ipm_max_iter, self.eliminate = method, ipm_max_iter, eliminate
         self.backend = backend  # the interior point's iteration: "numpy", "numba" or "auto"
@@ -130,7 +131,7 @@ class Auto(Strategy):
 
     def __init__(self, method: str = "auto", backend: str = "auto"):
         if method not in ("auto", "admm"):
-            raise ValueError(f"method must be 'auto' or 'admm', not {method!r}")
+            raise InputError(f"method must be 'auto' or 'admm', not {method!r}")
         self.method, self.backend = method, backend
 
     def solve_blocks(self, problem: Problem):

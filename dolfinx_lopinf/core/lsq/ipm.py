@@ -25,6 +25,7 @@ from .linalg import (
     vech_index,
 )
 from .problem import Certificate, Problem, Strategy, symmetric_answer, symmetric_start
+from ...errors import InputError
 
 STEP_FRACTION = 0.98
 #: STALL_RUN steps in a row shorter than STALL_STEP once m mu / f <= STALL_GAP x gap_tol are a
@@ -505,7 +506,7 @@ class InteriorPoint(Strategy):
         if feasible.all():
             return symmetric_answer(problem, x, t0)
         if not problem.spd.ok:
-            raise ValueError("the interior point's certificate needs a nonsingular H")
+            raise InputError("the interior point's certificate needs a nonsingular H")
         newton = FaceNewton(problem, self.gap_tol)
         x_ip, ip, details = interior_point(problem, x, feasible, newton, gap_tol=self.gap_tol,
                                            max_iter=self.max_iter, eliminate=self.eliminate,

@@ -20,6 +20,7 @@ from .linalg import (
     unvech,
     vech_index,
 )
+from ...errors import InputError
 
 
 #: the relative duality gap is measured against max(f, floor ||Z||^2) (Problem.f_floor), the
@@ -158,7 +159,7 @@ class Problem:
     def __post_init__(self):
         r, p = self.Z.shape
         if self.L.shape != (p, p) or p != self.n_blocks * r + self.n_free:
-            raise ValueError(f"L {self.L.shape} and Z {self.Z.shape} do not fit {self.n_blocks} "
+            raise InputError(f"L {self.L.shape} and Z {self.Z.shape} do not fit {self.n_blocks} "
                              f"symmetric blocks and {self.n_free} free columns")
 
     @property
@@ -358,7 +359,7 @@ class Problem:
 
     def _blocks_only(self):
         if self.n_free:
-            raise ValueError("minimise the free columns out first (Problem.without_free)")
+            raise InputError("minimise the free columns out first (Problem.without_free)")
 
 
 def symmetric_start(problem: Problem):
@@ -395,7 +396,7 @@ class Strategy:
 
     def _one_block(self, problem: Problem):
         if problem.n_blocks != 1:
-            raise ValueError(f"{type(self).__name__} solves one symmetric block, not "
+            raise InputError(f"{type(self).__name__} solves one symmetric block, not "
                              f"{problem.n_blocks}")
 
     def __repr__(self) -> str:

@@ -34,6 +34,7 @@ import scipy.linalg
 from .fractional import kernel
 from .linalg import from_eig, sym
 from .problem import Certificate
+from ...errors import InputError
 
 STEP_FRACTION = 0.98
 #: the gap's reference is max(f + f_const, GAP_FLOOR f_scale): GAP_FLOOR 1e-8 = 1e-18 f_scale,
@@ -87,7 +88,7 @@ class QuadraticPSD:
         for Pk, Fk in zip(self.P, self.F):
             nk = Fk.shape[0]
             if Pk.shape != (nk * (nk + 1) // 2, len(self.h)):
-                raise ValueError(f"P_k {Pk.shape} does not map {len(self.h)} unknowns to {nk} x {nk}")
+                raise InputError(f"P_k {Pk.shape} does not map {len(self.h)} unknowns to {nk} x {nk}")
             sizes.append(nk)
         object.__setattr__(self, "sizes", tuple(sizes))
 
