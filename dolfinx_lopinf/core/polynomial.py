@@ -893,7 +893,7 @@ class PolynomialROM:
         Returns:
             :class:`~dolfinx_lopinf.core.rom.Trajectory` (Vh: the momenta p = qh_t, the
             reduced mass being I); ``info``: ``newton_iterations``, ``jacobians``,
-            ``energy`` (1/2 |p|^2 + U(q) per stored column, when the model has a potential).
+            ``energy`` (``1/2 |p|^2 + U(q)`` per stored column, when the model has a potential).
         """
         from .rom import Trajectory, _check_on_failure, _initial_state
 
