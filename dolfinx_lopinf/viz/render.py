@@ -119,8 +119,11 @@ def error_vs_r(path, rows: list[dict], *, title: str = "",
     """Relative error against r for every method: ``series`` are (row key, label) pairs drawn
     solid, dashed, dash-dotted, ... (default: the training and test errors), ``floors`` the
     projection errors of the L-OpInf rows (dotted, black and grey) - what no ROM in this basis
-    can beat."""
+    can beat. The legend has one entry per method (colour and marker), one per series (line
+    style, e.g. "train [0, 0.03] s" solid, "test [0.03, 0.18] s" dashed) and the floors."""
     plt = _pyplot()
+    from matplotlib.lines import Line2D
+
     fig, ax = plt.subplots(figsize=(7.6, 4.4))
     # distinct markers so coinciding curves stay visible (L-OpInf: large hollow markers)
     styles = {"intrusive": ("intrusive", "C2", "^", 5, None),
@@ -131,22 +134,26 @@ def error_vs_r(path, rows: list[dict], *, title: str = "",
               "lopinf_fd": ("L-OpInf, finite differences", "C5", "v", 7, "none"),
               "lopinf_mass_I": ("L-OpInf, Mh = I", "C6", "P", 7, "none")}
     lines = ["-", "--", "-.", (0, (1, 1))]
+    handles = []
     for method, (label, color, marker, size, face) in styles.items():
         sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
         if not sel:
             continue
         rs = [r["r"] for r in sel]
         kw = dict(color=color, marker=marker, markersize=size, markerfacecolor=face)
-        for i, (key, name) in enumerate(series):
-            ax.semilogy(rs, [min(r[key], 1e3) for r in sel], linestyle=lines[i % len(lines)],
-                        label=f"{label}, {name}", **kw)
+        for i, (key, _) in enumerate(series):
+            ax.semilogy(rs, [min(r[key], 1e3) for r in sel], linestyle=lines[i % len(lines)], **kw)
+        handles.append(Line2D([], [], linestyle="none", label=label, **kw))
+    handles += [Line2D([], [], color="0.3", linestyle=lines[i % len(lines)], label=name)
+                for i, (_, name) in enumerate(series)]
     sel = sorted((r for r in rows if r["method"] == "lopinf"), key=lambda r: r["r"])
     for i, (key, name) in enumerate(floors):
         if sel and all(key in r for r in sel):
-            ax.semilogy([r["r"] for r in sel], [r[key] for r in sel], ":", color=("k", "0.55")[i % 2],
-                        lw=1.6, label=name)
+            handles += ax.semilogy([r["r"] for r in sel], [r[key] for r in sel], ":",
+                                   color=("k", "0.55")[i % 2], lw=1.6, label=name)
     ax.set_xticks(sorted({r["r"] for r in rows}))
-    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel=ylabel, title=title)
+    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel=ylabel, title=title,
+                   legend={"handles": handles})
 
 
 def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
