@@ -284,7 +284,7 @@ def _peer_figures(out, cfg, traj_by_basis, rows, peer_rows):
     render.curves(out / "peer_error_vs_r.png", {k: v[0] for k, v in data.items()},
                   {k: v[1] for k, v in data.items()}, xlabel="reduced dimension r (peer: 2r states)",
                   ylabel="relative state error, test window", logy=True,
-                  colors=["C0", "C3", "C6", "C2", "C9", "C8"],
+                  colors=["C0", "C3", "C6", "C2", "C9", "C8"], markers=True,
                   title="beam: opinf's first-order model (peer) beside our ROMs")
     r = cfg["r_plot"]
     t, e = {}, {}

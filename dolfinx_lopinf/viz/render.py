@@ -158,20 +158,30 @@ def error_vs_r(path, rows: list[dict], *, title: str = "",
 
 def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
            logy: bool = False, vline: float | None = None, xlabel: str = "t [s]",
-           colors: list | None = None) -> Path:
+           colors: list | None = None, markers: bool = False) -> Path:
     """Time series (label -> values) on one axis; ``t`` may be one array or label -> array.
-    The first series is drawn thicker (the reference); ``colors`` overrides the palette."""
+    The first series is drawn thicker (the reference); ``colors`` overrides the palette.
+    ``markers``: a distinct marker per series (for few points, e.g. against r; coinciding
+    curves stay visible), and integer x ticks at the points when every x is a whole number."""
     colors = colors or ["C7", "C0", "C3", "C2", "C1"]
+    shapes = ["o", "x", "^", "s", "v", "D", "P"]
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 3.8))
+    xs = []
     for i, (label, values) in enumerate(series.items()):
-        tt = t[label] if isinstance(t, dict) else t
+        tt = np.asarray(t[label] if isinstance(t, dict) else t, dtype=float)
+        xs.append(tt)
         values = np.asarray(values, dtype=float)
         if logy:
             values = np.where(values > 0, values, np.nan)
-        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=colors[i % len(colors)])
+        kw = dict(marker=shapes[i % len(shapes)], markersize=9 - i % 4, markerfacecolor="none") \
+            if markers else {}
+        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=colors[i % len(colors)], **kw)
     if logy:
         ax.set_yscale("log")
+    x_all = np.concatenate(xs) if xs else np.array([])
+    if markers and x_all.size and np.all(x_all == np.round(x_all)):
+        ax.set_xticks(sorted(set(x_all.astype(int).tolist())))
     if vline is not None:
         ax.axvline(vline, color="k", ls=":", lw=1, label="end of training")
     return _finish(fig, ax, path, xlabel=xlabel, ylabel=ylabel, title=title)
