@@ -39,7 +39,8 @@ extensions = [
 
 source_suffix = {".md": "markdown"}
 root_doc = "index"
-exclude_patterns = ["_build", "generated/**/README.md", "Thumbs.db", ".DS_Store"]
+# docs/generated/*.md are included by the pages (``{include}``), not pages of their own
+exclude_patterns = ["_build", "generated/*.md", "generated/**/README.md", "Thumbs.db", ".DS_Store"]
 
 myst_enable_extensions = ["dollarmath", "amsmath", "colon_fence", "deflist"]
 myst_heading_anchors = 3
