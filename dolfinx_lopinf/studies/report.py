@@ -273,8 +273,8 @@ def _tables_beam_unseen_ic(m) -> list[str]:
         out += ["", f"### Unseen initial conditions, {basis} basis", ""]
         out += pivot(cells, lambda r: (r["r"],), lambda r: r["column"], "value")
     out += ["", "### The scheme `lo.fit(scheme=\"auto\")` chose", ""]
-    out += pivot(_by(rows, method="lopinf"), lambda r: (r["r"],), lambda r: r["basis"], "scheme",
-                 kind="")
+    out += pivot([dict(r, scheme=f"`{_short(r['scheme'])}`") for r in _by(rows, method="lopinf")],
+                 lambda r: (r["r"],), lambda r: r["basis"], "scheme", kind="")
     return out
 
 
@@ -293,8 +293,12 @@ def _tables_sine_gordon(m) -> list[str]:
 
 
 def _short(spec) -> str:
-    """A scheme's spec without its parameters where they are the defaults' (table width)."""
-    return re.sub(r"\(beta=0\.25, gamma=0\.5\)", "", str(spec)) if spec else "-"
+    """A scheme's spec for a table: average-acceleration Newmark's parameters left out, the
+    others to four digits."""
+    if not spec:
+        return "-"
+    text = re.sub(r"\(beta=0\.25, gamma=0\.5\)", "", str(spec))
+    return re.sub(r"-?\d+\.\d+(e-?\d+)?", lambda x: f"{float(x.group()):.4g}", text)
 
 
 def _tables_existing_code(m) -> list[str]:
@@ -312,6 +316,135 @@ def _tables_existing_code(m) -> list[str]:
     return out
 
 
+def _tables_own_loop(m) -> list[str]:
+    out = [f"The tutorial-style cantilever on {fmt(m.get('ranks', 1))} rank(s). Error: the tip "
+           "deflection under the unseen body force, relative. Rows: the basis and the reduced mass "
+           "asked for, and the data relation asked for (`auto`: identified; `named`: the loop's own "
+           "scheme; `continuous`: eighth-order differences); the last column says what `lo.fit` "
+           "chose at the largest r.", ""]
+    for integrator, loop in m.get("loops", {}).items():
+        rows = loop["roms"]
+        r_max = max(r["r"] for r in rows)
+        out += ["", f"### The {integrator} loop", "",
+                f"State size n = {fmt(loop['n_dofs'])}, dt = {fmt(loop['dt'])} s, trained on "
+                f"[0, {fmt(loop['t_train'])}] s, tested on [0, {fmt(loop['t_end'])}] s; FOM "
+                f"{fmt(loop['fom_seconds'], 'seconds')} s for the test run.", ""]
+        chose = {(r["basis"], r["mass"], r["requested"]): f"`{_short(r['scheme'])}`, Mh {r['mass_chosen']}"
+                 for r in rows if r["r"] == r_max}
+        cells = [dict(r, column=f"r = {r['r']}") for r in rows]
+        table = pivot(cells, lambda r: (r["basis"], r["mass"], r["requested"]), lambda r: r["column"],
+                      "test_error", index_header=("basis", "Mh", "relation asked"))
+        header, rule, body = table[0], table[1], table[2:]
+        keys = list(dict.fromkeys((r["basis"], r["mass"], r["requested"]) for r in rows))
+        out += [header + f" chose at r = {r_max} |", rule + "---|"]
+        out += [line + f" {chose.get(k, '-')} |" for line, k in zip(body, keys)]
+        floors = {r["r"]: r["projection_error_test"] for r in rows if r["basis"] == "euclidean"}
+        out += ["", "Projection floor of the Euclidean POD on the test data: " + ", ".join(
+            f"r = {k}: {fmt(v, 'error')}" for k, v in sorted(floors.items())) + "."]
+    return out
+
+
+def _tables_learned_mass(m) -> list[str]:
+    out = []
+    names = {"lopinf_mass_identity": "Mh = I", "lopinf_mass_learned": "learned Mh", "intrusive": "intrusive"}
+    for scene, what in (("beam", "state error on the test window (block POD, the midpoint DEL relation)"),
+                        ("cantilever", "tip error under the unseen load (Euclidean POD, the Newmark "
+                                       "relation)")):
+        rows = [r for r in m["rows"] if r["scene"] == scene]
+        if not rows:
+            continue
+        floor = [dict(r, method="projection", test_error=r["projection_error_test"])
+                 for r in rows if r["method"] == "lopinf_mass_identity"]
+        out += ["", f"### {scene}: {what}", ""]
+        out += pivot(rows + floor, lambda r: (r["r"],), lambda r: names.get(r["method"], r["method"]),
+                     "test_error")
+        learned = [r for r in rows if r["method"] == "lopinf_mass_learned"]
+        out += ["", "The learned-mass fits:", ""]
+        out += listing(learned, [("r", "r", ""), ("solver", "solver", ""),
+                                 ("certified_gap", "duality gap", "error"),
+                                 ("infer_seconds", "fit s", "seconds")])
+    return out
+
+
+def _tables_svk(m) -> list[str]:
+    out = [f"Trained at amplitudes {fmt(m['train_amplitudes'])}, tested at {fmt(m['test_amplitudes'])}; "
+           f"midpoint rule dt = {fmt(m['dt'])} s to t = {fmt(m['t_end'])} s. Error: the tip "
+           "displacement, relative, at each unseen amplitude.", ""]
+    for material, mm in m.get("materials", {}).items():
+        rows = mm["rows"]
+        out += ["", f"### {material} (n = {fmt(mm['n_dofs'])}, {fmt(mm['n_cells'])} cells)", "",
+                f"The linear (small-strain) model at the largest amplitude is off by "
+                f"{fmt(mm.get('linear_vs_nonlinear_tip_difference'), 'error')} (relative tip "
+                "difference to the nonlinear one).", ""]
+        out += pivot(rows, lambda r: (r["method"], r["r"]), lambda r: f"a = {fmt(r['amplitude'])}",
+                     "tip_error", index_header=("method", "r"))
+        longs = mm.get("long_runs") or []
+        if longs:
+            out += ["", "Undamped, unforced runs, five times the training length:", ""]
+            out += listing(longs, [(k, h, kind) for k, h, kind in (
+                ("method", "method", ""), ("r", "r", ""), ("scheme", "scheme", ""),
+                ("energy_error_rom", "ROM energy error", "error"),
+                ("energy_error_fom", "FOM energy error", "error"), ("stable", "stable", ""))])
+    return out
+
+
+def _tables_fishtail(m) -> list[str]:
+    rows = m["roms"]
+    inputs = list(rows[0]["output_errors"]) if rows else []
+    out = [f"Mesh `{m.get('size')}`: n = {fmt(m['n_dofs'])} on {fmt(m.get('n_ranks'))} rank(s), "
+           f"Newmark dt = {fmt(m['dt'])} s to t = {fmt(m['t_end'])} s; trained on the "
+           f"{m.get('train_input')} input over [0, {fmt(m['t_train'])}] s, data relation: "
+           f"{m.get('data')}; hull density {fmt(m.get('hull_density'))} kg/m^3. FOM "
+           f"{fmt(m.get('fom_seconds'), 'seconds')} s per input (the slowest), training snapshots "
+           f"on disk {fmt((m.get('snapshot_disk_bytes') or 0) / 1e6)} MB.", "",
+           "Relative tip-output error over the whole run, per input:", ""]
+    cells = [dict(r, value=r["output_errors"][i], column=i + (" (training)" if i == m.get("train_input")
+                                                             else ""))
+             for r in rows for i in inputs]
+    out += pivot(cells, lambda r: (NAMES.get(r["method"], r["method"]), r["r"]), lambda r: r["column"],
+                 "value", index_header=("method", "r"))
+    out += ["", "Time and fit:", ""]
+    out += listing(rows, [("method", "method", ""), ("r", "r", ""), ("infer_seconds", "fit s", "seconds"),
+                          ("rom_seconds", "ROM s (slowest input)", "seconds"),
+                          ("min_eig_K", "min eig Kh", ""), ("min_eig_C", "min eig Ch", "")])
+    return out
+
+
+def _mu(row) -> str:
+    mu = row.get("mu")
+    where = "inside" if row.get("inside") else "outside"
+    return f"{fmt(mu)} ({row.get('split')}, {where})"
+
+
+def _tables_parametric(m) -> list[str]:
+    out = [f"n = {fmt(m.get('n_dofs'))}, Newmark dt = {fmt(m.get('dt'))} s to t = {fmt(m.get('t_end'))} s. "
+           "Rows: each test parameter (inside or outside the training range), columns: the "
+           "models; the relative state error under an input no training run saw (the worst of "
+           "the parameter's test runs).", ""]
+    for study, text in (m.get("affine_terms") or {}).items():
+        out += [f"Affine terms read from the UFL ({study}):", "", "```text", str(text).strip(), "```", ""]
+    studies = list(dict.fromkeys(r.get("study", "") for r in m["roms"]))
+    for study in studies:
+        for r_value in sorted({r["r"] for r in m["roms"] if r.get("study", "") == study}):
+            rows = [r for r in m["roms"] if r.get("study", "") == study and r["r"] == r_value
+                    and r.get("split") == "test"]
+            out += ["", f"### {study + ', ' if study else ''}r = {r_value}", ""]
+            out += pivot(rows, lambda r: (_mu(r),), lambda r: NAMES.get(r["method"], r["method"]),
+                         "test_error", index_header=("parameter",))
+            unstable = [r for r in rows if not r.get("stable", True)]
+            if unstable:
+                out += ["", "Unstable: " + "; ".join(f"{NAMES.get(r['method'], r['method'])} at {_mu(r)}"
+                                                   for r in unstable) + "."]
+    fits = [f for f in m.get("fits", []) if f.get("method") == "lopinf"]
+    if fits:
+        out += ["", "### The L-OpInf fits", ""]
+        out += listing([dict(f, gap=(f.get("report") or {}).get("certificate", {}).get("duality_gap"),
+                             damping=(f.get("report") or {}).get("damping")) for f in fits],
+                       [("study", "study", ""), ("r", "r", ""), ("fit_seconds", "fit s", "seconds"),
+                        ("gap", "duality gap", "error"), ("damping", "damping", "")])
+    return out
+
+
 def _tables_generic(m) -> list[str]:
     rows = m.get("roms") or []
     if not rows:
@@ -324,7 +457,10 @@ def _tables_generic(m) -> list[str]:
 
 
 TABLES = {"beam": _tables_beam, "beam_unseen_ic": _tables_beam_unseen_ic,
-          "sine_gordon": _tables_sine_gordon, "existing_code_cantilever": _tables_existing_code}
+          "sine_gordon": _tables_sine_gordon, "existing_code_cantilever": _tables_existing_code,
+          "own_loop_cantilever": _tables_own_loop, "learned_mass": _tables_learned_mass,
+          "svk_cantilever": _tables_svk, "fishtail": _tables_fishtail,
+          "parametric_membrane": _tables_parametric, "parametric_cantilever": _tables_parametric}
 
 
 def scene_tables(scene: str, metrics: dict) -> list[str]:
@@ -355,6 +491,23 @@ CAPTIONS = {
                     "speed_vs_error.png": "ROM wall time against test error"},
     "existing_code_cantilever": {"tip_displacement.png": "Tip displacement under the unseen load: "
                                                          "FOM and ROMs"},
+    "own_loop_cantilever": {r"tip_error_(.*)\.png": "Tip error under the unseen body force, {0} loop",
+                            r"tip_(.*)\.png": "Tip deflection under the unseen body force, {0} loop: "
+                                              "the loop and the fitted models"},
+    "svk_cantilever": {r"tip_(.*)\.png": "Tip displacement at the largest unseen amplitude, {0}: "
+                                         "the nonlinear and the linear FOM, the ROMs",
+                       r"error_vs_r_(.*)\.png": "Tip error against r at the largest unseen amplitude, {0}",
+                       r"energy_(.*)\.png": "Energy of undamped, unforced runs, five times the "
+                                            "training length, {0}",
+                       r"deformed_(.*)\.png": "Deformed cantilever at true scale, {0}: FOM and ROMs"},
+    "fishtail": {r"poi_(.*)\.png": "Tip displacement, its error and the energy of the reconstructed "
+                                   "state, {0} input",
+                 r"deformed_(.*)\.png": "The deformed tail, FOM and L-OpInf side by side, {0} input"},
+    "parametric_membrane": {r"error_vs_mu_(.*)\.png": "Error at unseen parameters, {0} study "
+                                                      "(shaded: the training range)",
+                            r"fields_(.*)\.png": "Fields at an unseen parameter, {0} study: FOM and ROMs"},
+    "parametric_cantilever": {r"error_vs_(E|zeta)\.png": "Error at unseen designs against {0}",
+                              "deformed.png": "The cantilever at an unseen design: FOM and ROMs"},
 }
 
 

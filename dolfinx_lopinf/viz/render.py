@@ -35,6 +35,11 @@ def _pyplot():
 #: where a legend goes: beside the axes (upper left corner just right of them), so it never
 #: covers a curve; ``savefig(bbox_inches="tight")`` keeps it in the picture
 BESIDE = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}
+#: ... or below the axes (under the x label) when its labels are long: beside them, a legend
+#: of long labels would squeeze the axes into a narrow strip
+BELOW = {"loc": "upper left", "bbox_to_anchor": (0.0, -0.2), "borderaxespad": 0.0}
+#: labels longer than this put the legend below the axes
+LONG_LABEL = 34
 
 
 def _wrap(title: str, width: int = 70) -> str:
@@ -43,13 +48,16 @@ def _wrap(title: str, width: int = 70) -> str:
 
 
 def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict | None = None) -> Path:
-    """Label, grid, legend (beside the axes unless ``legend`` - extra ``ax.legend``
-    arguments - says otherwise), save and close a one-axis matplotlib figure."""
+    """Label, grid, legend (beside the axes - below them when a label is longer than
+    LONG_LABEL characters - unless ``legend``, extra ``ax.legend`` arguments, says otherwise),
+    save and close a one-axis matplotlib figure."""
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(_wrap(title))
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, **(BESIDE | (legend or {})))
+    handles = (legend or {}).get("handles") or ax.get_legend_handles_labels()[0]
+    longest = max((len(h.get_label()) for h in handles), default=0)
+    ax.legend(fontsize=8, **((BESIDE if longest <= LONG_LABEL else BELOW) | (legend or {})))
     fig.tight_layout()
     fig.savefig(path, dpi=130, bbox_inches="tight")
     import matplotlib.pyplot as plt
