@@ -55,7 +55,8 @@ napoleon_attr_annotations = True
 
 html_theme = "furo"
 html_title = f"dolfinx_lopinf {release}"
-html_static_path = []
+html_static_path = ["_static"]
+html_css_files = ["custom.css"]
 html_show_sourcelink = False
 copybutton_prompt_text = r">>> |\.\.\. |\$ "
 copybutton_prompt_is_regexp = True

@@ -559,13 +559,28 @@ def _copy_figures(run: Run, out: Path) -> list[Path]:
     return copied
 
 
+def _boxed(lines: list[str]) -> list[str]:
+    """Every markdown table of ``lines`` inside a ``{container} numbers`` block (the
+    documentation's CSS keeps its numbers on one line)."""
+    out, inside = [], False
+    for line in lines + [""]:
+        table = line.startswith("|")
+        if table and not inside:
+            out += ["```{container} numbers", ""]
+        elif inside and not table:
+            out += ["```"]
+        out.append(line)
+        inside = table
+    return out[:-1]
+
+
 def scene_page(run: Run, out: Path) -> str:
     """The markdown of ``out/<scene>.md``: provenance, tables, figures (their paths relative to the
     documentation's source folder, ``/<out>/<scene>/...`` - OUT must be a folder directly in it,
     e.g. docs/generated - so the page can be included from any page)."""
     figures = _copy_figures(run, out)
     lines = [provenance(run), ""]
-    lines += scene_tables(run.scene, run.metrics)
+    lines += _boxed(scene_tables(run.scene, run.metrics))
     if figures:
         lines += ["", "### Figures", ""]
         for png in figures:
@@ -596,6 +611,7 @@ def benchmarks_page(runs: dict[str, Run], out: Path) -> str:
         lines += [line.replace(f"| {run.metrics['scene']} |", f"| {scene} ({mode(run.metrics)}) |", 1)
                   for line in scene_report(run.metrics, png)]
         figures.append((scene, png))
+    lines = _boxed(lines)
     for scene, png in figures:
         lines += ["", f"```{{figure}} /{out.name}/{scene}/{png.name}", f":alt: {scene}: speed against error",
                   ":width: 100%", "", f"{scene} ({mode(runs[scene].metrics)}): ROM and inference "
