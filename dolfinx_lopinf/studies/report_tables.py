@@ -367,8 +367,12 @@ def _tables_parametric(m) -> list[str]:
             rows = [r for r in m["roms"] if r.get("study", "") == study and r["r"] == r_value
                     and r.get("split") == "test"]
             out += ["", f"### {study + ', ' if study else ''}r = {r_value}", ""]
+            order = [PARAMETRIC_NAMES[k] for k in ("lopinf", "intrusive", "opinf", "projection")
+                     if any(r["method"] == k for r in rows)]
             out += pivot(rows, lambda r: (_mu(r),), lambda r: PARAMETRIC_NAMES.get(r["method"], r["method"]),
-                         "test_error", index_header=("parameter",))
+                         "test_error", index_header=("parameter",),
+                         columns=order + [c for c in dict.fromkeys(PARAMETRIC_NAMES.get(r["method"], r["method"])
+                                                                   for r in rows) if c not in order])
             unstable = [r for r in rows if not r.get("stable", True)]
             if unstable:
                 out += ["", "Unstable: " + "; ".join(f"{PARAMETRIC_NAMES.get(r['method'], r['method'])} at "

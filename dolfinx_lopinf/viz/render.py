@@ -233,6 +233,12 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
 TOP_VIEW = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]
 
 
+#: the colour bar of a deformed-shape panel when the caller gives none: three labels of two
+#: digits inside the panel (pyvista's five labels of three digits overlap in a narrow panel)
+DEFAULT_BAR = {"n_labels": 3, "fmt": "%.2g", "width": 0.6, "position_x": 0.3, "position_y": 0.04,
+               "title_font_size": 14, "label_font_size": 12}
+
+
 def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, titles=None,
                           clim=None, camera=None, parallel_scale: float | None = None,
                           panel=(420, 360), title: str | None = None,
@@ -267,7 +273,8 @@ def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, tit
             warped = g.warp_by_vector("u", factor=magnify)
             plotter.add_mesh(outline, color="grey", line_width=1, opacity=0.5)  # undeformed outline
             plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim,
-                             show_scalar_bar=(i, j) == bar_at, scalar_bar_args=scalar_bar or {})
+                             show_scalar_bar=(i, j) == bar_at,
+                             scalar_bar_args=scalar_bar or DEFAULT_BAR)
             text = label if titles is None else f"{label}  {titles[i]}"
             plotter.add_text(text, font_size=9 if scalar_bar is None else 8, position="upper_left")
             if title and i == len(frames) - 1 and j == len(labels) - 1:
