@@ -37,7 +37,7 @@ def _pyplot():
 BESIDE = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}
 #: ... or below the axes (under the x label) when its labels are long: beside them, a legend
 #: of long labels would squeeze the axes into a narrow strip
-BELOW = {"loc": "upper left", "bbox_to_anchor": (0.0, -0.2), "borderaxespad": 0.0}
+BELOW = {"loc": "upper left", "borderaxespad": 0.0}
 #: labels longer than this put the legend below the axes
 LONG_LABEL = 34
 
@@ -57,7 +57,14 @@ def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict
     ax.grid(True, which="both", alpha=0.3)
     handles = (legend or {}).get("handles") or ax.get_legend_handles_labels()[0]
     longest = max((len(h.get_label()) for h in handles), default=0)
-    ax.legend(fontsize=8, **((BESIDE if longest <= LONG_LABEL else BELOW) | (legend or {})))
+    where = BESIDE
+    if longest > LONG_LABEL:  # below the x label: where it ends, in axes coordinates
+        fig.tight_layout()
+        fig.canvas.draw()
+        box = ax.xaxis.label.get_window_extent(fig.canvas.get_renderer())
+        below = ax.transAxes.inverted().transform((0.0, box.y0))[1] - 0.03
+        where = BELOW | {"bbox_to_anchor": (0.0, below)}
+    ax.legend(fontsize=8, **(where | (legend or {})))
     fig.tight_layout()
     fig.savefig(path, dpi=130, bbox_inches="tight")
     import matplotlib.pyplot as plt
