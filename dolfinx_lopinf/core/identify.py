@@ -7,7 +7,7 @@ data (multiply by M^{-1}), so
 
     rho(theta) = min_{C, K, B} ||Qm + C Qc + K Qk - B Uf||_F / ||Qm||_F
 
-- one linear least squares per parameter vector theta = (alpha_m, alpha_f, beta, gamma) -
+(one linear least squares per parameter vector theta = (alpha_m, alpha_f, beta, gamma))
 drops to the closure level (rounding for exact data, the POD truncation for FOM data) at the
 scheme that made the data, and is larger elsewhere. :func:`identify` evaluates rho on the
 standard members (Newmark's average / linear acceleration, Fox-Goodwin, central

@@ -10,7 +10,7 @@ L-OpInf solves the constrained least-squares problem
     min  || ddQh + Kh Qh + Ch dQh - Bh U ||_F
     s.t. Kh = Kh^T, Ch = Ch^T, Kh >= eps I, Ch >= eps I   (matrix inequalities),
 
-so the learned ROM is the Euler-Lagrange equation of L_h = 1/2 |qh_t|^2 - 1/2 qh^T Kh qh
+so the learned ROM is the Euler-Lagrange equation of ``L_h = 1/2 |qh_t|^2 - 1/2 qh^T Kh qh``
 (with Rayleigh-like dissipation Ch and input Bh u) by construction.
 
 Compression (:mod:`dolfinx_lopinf.core.gram`): with Theta = [Kh, Ch, -Bh] (r, p) and

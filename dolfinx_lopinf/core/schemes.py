@@ -9,7 +9,7 @@ numerical dissipation and period error. Every scheme here gives
   column - linear in the operators, so every scheme is the same convex L-OpInf fit;
 * :meth:`Scheme.step`: the ROM's one-step map  x_{n+1} = G x_n + H F_n,  F_n = f(t_n + tau dt).
 
-**Generalised-alpha** (Chung & Hulbert 1993), on the state (u, v, a):
+**Generalised-alpha** (Chung & Hulbert 1993), on the state (u, v, a)::
 
     u_{n+1} = u_n + dt v_n + dt^2 ((1/2 - beta) a_n + beta a_{n+1})
     v_{n+1} = v_n + dt ((1 - gamma) a_n + gamma a_{n+1})
