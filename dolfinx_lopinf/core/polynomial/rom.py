@@ -82,14 +82,16 @@ class PolynomialROM:
         (:class:`~dolfinx_lopinf.core.rom.Trajectory`).
 
         Each step solves, for d = q1 - q0 (reduced Newton until the residual is below ``tol``
-        times the size of its terms),
+        times the size of its terms)::
+
             d/dt + C d/2 + dt/2 g(q0, q1) = p0 + dt/2 B u_{k+1/2},
             p1 = d/dt - C d/2 - dt/2 g(q0, q1) + dt/2 B u_{k+1/2},
+
         with g = f((q0+q1)/2) (midpoint) or the two-point Gauss average of f on [q0, q1] (AVF).
         A Newton correction below NEWTON_STALL (16 eps) times the state also ends the
         iteration (full Newton, both loops): the residual test alone, at tol = 1e-13, let the
         force's rounding decide whether a step converged. ``atol`` (default 0) is added to the
-        stopping test, |R| <= tol size + atol: the rounding floor of a force that is not
+        stopping test, ``|R| <= tol size + atol``: the rounding floor of a force that is not
         evaluated to machine precision relative to its own size (a DOLFINx-assembled force
         near rest sums cell terms that cancel).
 
@@ -105,7 +107,7 @@ class PolynomialROM:
                 the trajectory up to it, NaN after (``trajectory.stable`` False).
             jacobian: ``"fresh"`` (Newton) or ``"lazy"`` (simplified Newton, numpy loop only:
                 the last factorised Newton matrix is kept, across steps too, and formed afresh
-                when convergence slows, |delta_k| > 0.1 |delta_(k-1)|; it pays when the
+                when convergence slows, ``|delta_k| > 0.1 |delta_(k-1)|``; it pays when the
                 Jacobian costs far more than the force, e.g. the FOM-assembled Galerkin force).
             backend: ``"numpy"`` (the reference loop, any model), ``"numba"`` (the compiled
                 loop for a :class:`PolynomialPotential` or :class:`PolynomialForce`, equal to
@@ -114,7 +116,7 @@ class PolynomialROM:
         Returns:
             :class:`~dolfinx_lopinf.core.rom.Trajectory` (Vh: the momenta p = qh_t, the
             reduced mass being I); ``info``: ``newton_iterations``, ``jacobians``,
-            ``energy`` (1/2 |p|^2 + U(q) per stored column, when the model has a potential).
+            ``energy`` (``1/2 |p|^2 + U(q)`` per stored column, when the model has a potential).
         """
         from ..rom import Trajectory, _check_on_failure, _initial_state
 
