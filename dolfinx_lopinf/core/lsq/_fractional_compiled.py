@@ -458,7 +458,7 @@ def run(problem, xs, gap_tol, max_iter):
         trace.append((float(state[2]), float(state[3]), float(est)))
         stalled = _stalled(trace, est, gap_tol)
         if est <= CERTIFY_AT * gap_tol or stalled:
-            c = problem.certify(xs, Y, state[1])
+            c = problem.certify_best(xs, Y, state[1], gap_tol)
             if best is None or c["duality_gap"] < best["duality_gap"]:
                 best, best_state = c, (xs.copy(), Y.copy(), float(state[1]))
             if c["duality_gap"] <= gap_tol:
@@ -468,6 +468,6 @@ def run(problem, xs, gap_tol, max_iter):
                 stopped = f"stalled at iteration {it}"
                 break
     if best_state is None:
-        best = problem.certify(xs, Y, state[1])
+        best = problem.certify_best(xs, Y, state[1], gap_tol)
         best_state = (xs, Y, float(state[1]))
     return (*best_state[:2], best_state[2], it, best, stopped, trace)
