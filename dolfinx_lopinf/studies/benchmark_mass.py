@@ -18,7 +18,7 @@ in the coordinates the fit sees (the first three with sensor noise;
   (consistent mass, Rayleigh damping) under a smooth body load, integrated with the
   average-acceleration Newmark scheme, Euclidean POD to r without noise: the POD spectrum
   falls to 1e-6 .. 1e-8 by r = 8 .. 16 and the fit's residual is the truncation alone
-  (:func:`near_exact` also predicts an unseen load against the free fit and the intrusive
+  (:func:`dolfinx_lopinf.core.synthetic.near_exact` also predicts an unseen load against the free fit and the intrusive
   ROM);
 * ``file:PATH``: recorded snapshots (``lo.Snapshots.save``, e.g. ``demos/own_loop.py``'s
   train_newmark.npz), Euclidean POD to r, the Newmark relation.
@@ -44,15 +44,13 @@ from ..core.polynomial import n_unknowns
 from ..core.synthetic import potential_samples, stiff_potential
 
 
-MASS_KINDS = synthetic.MASS_KINDS + ("nearexact",)
+MASS_KINDS = synthetic.MASS_KINDS
 
 
 def mass_data(kind: str, r: int, n: int = 1500, seed: int = 0):
     """(Qbar, D1, D2, Ubar) of a learned-mass data set: a kind of
     :func:`dolfinx_lopinf.core.synthetic.mass_data`, or ``file:PATH`` (recorded snapshots:
     Euclidean POD to r, the Newmark relation)."""
-    if kind == "nearexact":
-        return near_exact(r)["relation"]
     if isinstance(kind, str) and kind.startswith("file:"):
         from ..core.basis import pod
         from ..core.ddt import newmark_data
@@ -61,63 +59,6 @@ def mass_data(kind: str, r: int, n: int = 1500, seed: int = 0):
         S = Snapshots.load(kind[5:])
         return newmark_data(pod(S.Q, r).project(S.Q), S.times, S.U)
     return synthetic.mass_data(kind, r, n, seed)
-
-
-def _bar(N=150):
-    """The near-exact kind's full model: a clamped-free bar of N linear elements (consistent
-    mass, unit stiffness and density, Rayleigh damping) loaded by the body force x^2."""
-    h = 1.0 / N
-    K, M = np.zeros((N + 1, N + 1)), np.zeros((N + 1, N + 1))
-    for e in range(N):
-        K[e:e + 2, e:e + 2] += np.array([[1.0, -1.0], [-1.0, 1.0]]) / h
-        M[e:e + 2, e:e + 2] += h / 6.0 * np.array([[2.0, 1.0], [1.0, 2.0]])
-    K, M = K[1:, 1:], M[1:, 1:]  # clamped at x = 0
-    x = h * np.arange(1, N + 1)
-    return M, K, 0.05 * M + 2e-4 * K, (M @ x**2)[:, None]
-
-
-def _bar_train(t):
-    return np.array([np.sin(0.7 * t) * min(t / 2.0, 1.0) + 0.5 * np.sin(1.1 * t)])
-
-
-def _bar_test(t):
-    return np.array([np.tanh(t) * np.cos(0.9 * t) + 0.3 * np.sin(0.5 * t)])
-
-
-def near_exact(r: int, n: int = 400, dt: float = 0.02) -> dict:
-    """The ``nearexact`` kind at r: ``relation`` (Qk, Qc, Qm, Uf) of the Newmark scheme on the
-    POD coordinates of the training run, ``predict(ops)`` (the relative error of a fitted
-    model on the unseen load, in the POD coordinates), ``free`` and ``intrusive`` (the same
-    error of the free fit - M = I, K, C, B unconstrained - and of the Galerkin ROM V^T {M, K,
-    C, B} V), ``sv_ratio`` (the last POD singular value over the first)."""
-    from ..core.basis import pod
-    from ..core.identify import Residual
-    from ..core.metrics import relative_error
-    from ..core.rom import LagrangianROM
-    from ..core.schemes import Newmark
-
-    scheme = Newmark(0.25, 0.5)
-    M, K, C, B = _bar()
-    N = len(K)
-    fom = LagrangianROM(K=K, M=M, C=C, B=B, scheme=scheme, lagrangian=False)
-    train = fom.simulate(np.zeros(N), np.zeros(N), dt, n, inputs=_bar_train)
-    test = fom.simulate(np.zeros(N), np.zeros(N), dt, n, inputs=_bar_test)
-    basis = pod(train.Qh, r)
-    Qh, truth = basis.project(train.Qh), basis.project(test.Qh)
-    t = dt * np.arange(n + 1)
-    U = np.array([_bar_train(s) for s in t]).T
-
-    def predict(M_, K_, C_, B_):
-        rom = LagrangianROM(K=K_, M=M_, C=C_, B=B_, scheme=scheme, lagrangian=False)
-        return relative_error(truth, rom.simulate(np.zeros(r), np.zeros(r), dt, n, inputs=_bar_test).Qh)
-
-    free = Residual([(Qh, t, U, None, None, None)]).free_operators(scheme)
-    V = basis.V
-    sv = np.linalg.svd(Qh, compute_uv=False)
-    return {"relation": scheme.relation(Qh, t, U), "predict": predict,
-            "free": predict(np.eye(r), free.K, free.C, free.B),
-            "intrusive": predict(V.T @ M @ V, V.T @ K @ V, V.T @ C @ V, V.T @ B),
-            "sv_ratio": float(sv[-1] / sv[0])}
 
 
 def _phi(problem, theta, tau):

@@ -325,7 +325,7 @@ def test_near_exact_data_predict_at_the_free_fit_and_intrusive_level(r):
     equations: 3.4e-6 / 9.2e-6 / 2.1e-5 against the free fit's 4.4e-7 / 1.4e-7 / 4.2e-8 (r = 8 /
     12 / 16). With the isotropic floor: certified, within 3x of the better of the free fit
     and the intrusive ROM (measured 1.0x / 1.5x / 1.1x)."""
-    from dolfinx_lopinf.studies.benchmark_mass import near_exact
+    from dolfinx_lopinf.core.synthetic import near_exact
 
     d = near_exact(r)
     ops = lo.core.infer_mechanical(*d["relation"], mass="learned")
@@ -340,7 +340,7 @@ def test_the_bound_is_never_above_the_objective_on_near_exact_data(r):
     the normal matrix and missed the cone, leaving a 'bound' above the objective (negative
     gaps, certified). Every bound - from the interior point's Y and from its projection -
     is now at or below phi (to the rounding of phi), or absent (gap inf)."""
-    from dolfinx_lopinf.studies.benchmark_mass import near_exact
+    from dolfinx_lopinf.core.synthetic import near_exact
 
     d = near_exact(r)
     with warnings.catch_warnings():
