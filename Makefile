@@ -1,4 +1,5 @@
 # Two commands (see README): `make demo` runs the beam scene, `make test` runs the tests.
+# `make docs` builds the documentation (warnings are errors) into docs/_build/html.
 # Both create .venv on first use with a Python >= 3.12 (needed by the DOLFINx wheel).
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -10,7 +11,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench lint test test-fast test-rounding venv clean
+.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench lint test test-fast test-rounding venv clean docs docs-figures
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -18,7 +19,7 @@ $(VENV)/.installed: pyproject.toml
 	echo "creating $(VENV) with $$py"; \
 	$$py -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[all,test,peers]'
+	$(PY) -m pip install --quiet -e '.[all,test,peers,docs]'
 	@touch $@
 
 venv: $(VENV)/.installed
@@ -57,9 +58,20 @@ test-fast: venv
 # that changes here was decided by rounding.
 CORE_TESTS = tests/core/test_engine.py tests/core/test_numpy_core.py tests/core/test_rank.py \
 	tests/core/test_inputs_core.py tests/core/test_fit.py tests/core/test_polynomial_fit.py \
-	tests/core/test_mass.py
+	tests/core/test_mass.py tests/core/test_schemes.py
 test-rounding: venv
 	LOPINF_TEST_PERTURB=1e-15 OPENBLAS_NUM_THREADS=2 OMP_NUM_THREADS=2 $(PY) -m pytest -q $(CORE_TESTS)
 
+# The documentation: Markdown pages (myst-parser), the API from the docstrings, the tables and
+# figures committed under docs/generated (no demo runs here; `make docs-figures` rewrites them
+# from the demos' results). Warnings are errors.
+docs: venv
+	$(PY) -m sphinx -W --keep-going -b html docs docs/_build/html
+
+# After running the demos (results/<demo>/metrics.json and figures): the benchmark tables, the
+# demo tables and the figure copies under docs/generated
+docs-figures: venv
+	$(PY) -m dolfinx_lopinf.studies.report --docs docs/generated $(OUT)
+
 clean:
-	rm -rf $(VENV) $(OUT) .pytest_cache
+	rm -rf $(VENV) $(OUT) .pytest_cache docs/_build

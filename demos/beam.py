@@ -36,7 +36,7 @@ import dolfinx_lopinf as lo
 from dolfinx_lopinf.studies import peers
 from dolfinx_lopinf.viz import render
 from dolfinx_lopinf.fem._dolfinx import MPI
-from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.state import output_matrix_in_state
 from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import beam as scene
 from dolfinx_lopinf.studies import harness
@@ -48,7 +48,7 @@ QUICK = dict(t_train=0.01, t_end=0.04, t_energy=0.2, t_long=0.3,
 
 
 def main(argv=None):
-    args = harness.parse(__doc__, argv, out="results/beam", quick="short windows, r in {4, 8} (< 1 min)")
+    args = harness.parse(__doc__, argv, out="results/beam", quick="short windows, r in {4, 8}")
     cfg = QUICK if args.quick else FULL
     out = args.out
     comm = MPI.COMM_WORLD
@@ -144,7 +144,8 @@ def main(argv=None):
 
 def _fit_and_score(basis, galerkin, train, test, snaps, cfg, dt):
     """Fit L-OpInf and standard OpInf in ``basis``, add the Galerkin ROM, simulate all three
-    with the midpoint VI and score them (METHOD.md section 5)."""
+    with the midpoint VI and score them (relative state errors on the training and test
+    windows, the energy error, the midpoint deflection)."""
     Qh_all = basis.project(train.Q)
     Qh, _, ddQh = lo.core.derivatives(Qh_all, train.times)
     Qbar, D2 = lo.core.ddt.variational_data(Qh_all, train.times)  # midpoint-DEL-consistent data
@@ -239,10 +240,13 @@ def _figures(out, cfg, snaps, beam, traj_by_basis, rows, E_mid, dt):
               f"L-OpInf r={r} (M-orth. POD)": basis_m.reconstruct(short_m.Qh[:, cols], rows=w)}
     render.beam_shapes(out / "beam_shapes.png", beam.x_nodes, shapes, times,
                        title="deflection magnified; training ends at t = %.2f s" % cfg["t_train"])
+    windows = (("train_error", f"train [0, {cfg['t_train']:g}] s"),
+               ("test_error", f"test [{cfg['t_train']:g}, {cfg['t_end']:g}] s"))
     for name, label in (("euclidean-block", "block-diagonal Euclidean POD (black box)"),
                         ("mass-orthonormal", "mass-orthonormal POD (uses M)")):
         render.error_vs_r(out / f"error_vs_r_{name}.png", [x for x in rows if x["basis"] == name],
-                          title=f"beam, {label}")
+                          series=windows, title=f"beam: relative state error of each ROM against r, "
+                                                f"{label}")
     tl = long_l.times
     sel = tl <= cfg["t_energy"] + 1e-12
     series = {f"{name} r={r}": traj[key][2][sel] for key, name in
@@ -250,17 +254,18 @@ def _figures(out, cfg, snaps, beam, traj_by_basis, rows, E_mid, dt):
     series[f"L-OpInf r={r}, M-orth. POD"] = traj_by_basis["mass-orthonormal"]["lopinf"][2][sel]
     render.curves(out / "energy_error.png", tl[sel], series, ylabel="relative FOM energy error",
                   logy=True, vline=cfg["t_train"], colors=["C0", "C3", "C2", "C1"],
-                  title="FOM energy error of the reconstructed ROM state (block POD unless noted)")
+                  title="beam: relative FOM energy error of the reconstructed ROM state "
+                        "(block POD unless noted)")
     y_t = {"FOM": snaps.output_times, f"L-OpInf r={r}": tl, f"standard OpInf r={r}": tl}
     y = {"FOM": snaps.Y[0], f"L-OpInf r={r}": (E_mid @ basis.V @ long_l.Qh)[0],
          f"standard OpInf r={r}": (E_mid @ basis.V @ traj["opinf"][1].Qh)[0]}
     render.curves(out / "midpoint_deflection.png", y_t, y, ylabel="w(l/2, t) [m]",
-                  vline=cfg["t_train"], title="midpoint deflection, block POD")
+                  vline=cfg["t_train"], title="beam: midpoint deflection w(l/2, t), FOM and ROMs (block POD)")
     err = {f"{k}": np.abs(np.interp(tl, snaps.output_times, snaps.Y[0]) - v)
            / np.abs(snaps.Y[0]).max() for k, v in list(y.items())[1:]}
     render.curves(out / "midpoint_deflection_error.png", tl, err, logy=True, vline=cfg["t_train"],
                   colors=["C0", "C3"],
-                  ylabel="|w_ROM - w_FOM| / max|w_FOM|", title="midpoint deflection error")
+                  ylabel="|w_ROM - w_FOM| / max|w_FOM|", title="beam: midpoint deflection error of the ROMs (block POD)")
 
 
 def _peer_figures(out, cfg, traj_by_basis, rows, peer_rows):
@@ -280,7 +285,7 @@ def _peer_figures(out, cfg, traj_by_basis, rows, peer_rows):
     render.curves(out / "peer_error_vs_r.png", {k: v[0] for k, v in data.items()},
                   {k: v[1] for k, v in data.items()}, xlabel="reduced dimension r (peer: 2r states)",
                   ylabel="relative state error, test window", logy=True,
-                  colors=["C0", "C3", "C6", "C2", "C9", "C8"],
+                  colors=["C0", "C3", "C6", "C2", "C9", "C8"], markers=True,
                   title="beam: opinf's first-order model (peer) beside our ROMs")
     r = cfg["r_plot"]
     t, e = {}, {}

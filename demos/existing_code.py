@@ -31,7 +31,7 @@ import numpy as np
 import dolfinx_lopinf as lo  # imports dolfinx_solver first when the PyPI wheel is used
 from dolfinx_lopinf.studies import peers
 from dolfinx_lopinf.viz import render
-from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.state import output_matrix_in_state
 from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402  (after dolfinx_lopinf, for the PyPI wheel)
@@ -215,8 +215,9 @@ def main(argv=None):
         series[f"opinf peer r={r_top} (first order, {2 * r_top} states)"] = preds[("opinf_peer", r_top)].Y[0]
     render.curves(out / "tip_displacement.png", test.times, series,
                   ylabel="tip displacement u_z [m]",
-                  title=f"unseen load: relative error {best['test_error']:.1e}, ROM "
-                        f"{best['speedup']:.0f}x faster")
+                  title=f"cantilever: tip displacement under the unseen load (L-OpInf r={r_top}: "
+                        f"relative error {best['test_error']:.1e}, {best['speedup']:.0f}x faster "
+                        f"than the FOM)")
     print(f"n = {train.n_states} dofs; FOM {fom_test_s:.2f} s for {n_test} steps")
     harness.summary(sorted(rows + peer_rows, key=lambda x: x["r"]),
                     [("method", "method"), ("r", "r"), ("scheme", "scheme"), ("mass", "Mh"),

@@ -242,7 +242,7 @@ def step_time_vs_n(cfg, r, sizes=(2000, 20000), n_steps=2000):
 
 def v0_state(sg, v0_local):
     """The initial velocity in state order (gathered)."""
-    from dolfinx_lopinf.fem.fom import gather_states
+    from dolfinx_lopinf.fem.state import gather_states
 
     n_owned = sg.system.V.dofmap.index_map.size_local
     gathered = gather_states(sg.system.V, v0_local[:n_owned, None], sg.state_map)
@@ -259,7 +259,9 @@ def fom_energy(Qh, Vh, V, K_fom, nl, h):
 
 def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
     render.error_vs_r(out / "error_vs_r.png", [r for r in rows if np.isfinite(r["test_error"])],
-                      title="sine-Gordon: relative state error")
+                      series=(("train_error", f"train [0, {cfg['t_train']:g}]"),
+                              ("test_error", f"test [{cfg['t_train']:g}, {cfg['t_end']:g}]")),
+                      title="sine-Gordon: relative state error of each ROM against r")
     r_show = max(cfg["r_long"])
     series = {}
     for t in cfg["shapes_at"]:
@@ -268,7 +270,10 @@ def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
         rom, tr = keep[("lopinf", r_show)]
         j = int(round(t / (dt * cfg["every"])))
         series[f"L-OpInf r={r_show} t={t:g}"] = rom.V @ tr.Qh[:, j]
-    render.wave_shapes(out / "wave_shapes.png", sg.x, series, title="sine-Gordon wave shapes")
+    render.wave_shapes(out / "wave_shapes.png", sg.x, series,
+                       title=f"sine-Gordon: the wave q(x, t) of the FOM and of L-OpInf r={r_show} "
+                             f"at t = {', '.join(f'{t:g}' for t in cfg['shapes_at'])} "
+                             f"(training ends at t = {cfg['t_train']:g})")
     r_max = max(cfg["r_long"])
     shown = [(m, r) for (m, r) in energy_curves if r == r_max] + \
         [(m, r) for (m, r) in energy_curves if r != r_max and m == "lopinf_nsd"]
@@ -279,7 +284,8 @@ def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
                   {f"{names[m]} r={r}": np.clip(energy_curves[(m, r)][1], 1e-16, 1e3) for m, r in shown},
                   ylabel="relative FOM energy error (clipped at 1e3)", logy=True,
                   vline=cfg["t_train"], colors=["C0", "C1", "C3", "C2", "C5"],
-                  title="FOM energy of the reconstructed ROM state")
+                  title="sine-Gordon: relative error of the FOM energy of the reconstructed ROM "
+                        "state")
     fast = [r for r in rows if r["method"] == "lopinf_ecsw"]
     pts = {}
     for method in ("lopinf", "lopinf_nsd", "opinf", "intrusive"):
@@ -293,7 +299,8 @@ def _figures(out, cfg, sg, snaps, keep, rows, energy_curves, dt, fom_seconds):
                        ("L-OpInf + ECSW, numpy loop", fast)):
         pts[label] = ([r["rom_seconds_numpy"] for r in sel], [r["test_error"] for r in sel])
     render.speed_vs_error(out / "speed_vs_error.png", pts, fom_seconds=fom_seconds,
-                          title="sine-Gordon: ROM time to t_end vs test error (blow-ups omitted)")
+                          title=f"sine-Gordon: ROM wall time to t = {cfg['t_end']:g} against test "
+                                f"error (blow-ups omitted)")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""``lo.parametric``: one reduced model for a family of designs.
+"""``lo.parametric``: one reduced model for a family of designs::
 
     import dolfinx_lopinf as lo
     psys = lo.parametric.ParametricSystem(L, q, q_t, {"mu": mu_c}, input_forms=[b], bcs=bcs)

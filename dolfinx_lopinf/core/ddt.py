@@ -1,4 +1,4 @@
-"""Finite-difference time derivatives of snapshot data (METHOD.md section 3).
+"""Finite-difference time derivatives of snapshot data: the continuous data relation.
 
 Eighth-order central differences on a uniform grid, time along the last axis:
 
@@ -106,7 +106,7 @@ def derivatives(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.n
 def variational_data(states: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Data on which L-OpInf matches the midpoint variational integrator exactly.
 
-    For L = 1/2 |q_t|^2 - 1/2 q^T K q the midpoint discrete Euler-Lagrange equations read
+    For ``L = 1/2 |q_t|^2 - 1/2 q^T K q`` the midpoint discrete Euler-Lagrange equations read
 
         (q_{k+1} - 2 q_k + q_{k-1}) / dt^2 + K (q_{k+1} + 2 q_k + q_{k-1}) / 4 = 0,
 

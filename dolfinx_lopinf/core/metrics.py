@@ -1,4 +1,5 @@
-"""Error measures of METHOD.md section 5 (numpy only)."""
+"""Error measures of reduced models: relative state or output errors and energy errors
+(numpy only)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ def relative_error(reference: np.ndarray, approximation: np.ndarray) -> float:
 
 
 def energy_error(energy: np.ndarray, relative: bool = True) -> np.ndarray:
-    """|E(t) - E(0)| (divided by |E(0)| when ``relative``) along a trajectory.
+    """``|E(t) - E(0)|`` (divided by ``|E(0)|`` when ``relative``) along a trajectory.
 
     E(0) must be finite; later non-finite energies (a trajectory that blew up) give
     non-finite errors, which :func:`is_stable` reports as unstable."""

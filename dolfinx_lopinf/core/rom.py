@@ -453,10 +453,10 @@ def load_rom(path) -> tuple[LagrangianROM, dict]:
 
 @dataclass(frozen=True)
 class WaveROM:
-    """Gray-box Lagrangian wave ROM  qh_tt = Kh qh - V^T (w * g(V qh))  (METHOD.md s. 4).
+    """Gray-box Lagrangian wave ROM  qh_tt = Kh qh - V^T (w * g(V qh))  (docs/method.md#wave-and-sine-gordon).
 
     It is the Euler-Lagrange equation of
-        L_h = 1/2 |qh_t|^2 + 1/2 qh^T Kh qh - sum_i w_i U(V_i qh),
+    ``L_h = 1/2 |qh_t|^2 + 1/2 qh^T Kh qh - sum_i w_i U(V_i qh)``,
     so the midpoint variational integrator applies (one small Newton solve per step).
 
     Attributes:
@@ -504,7 +504,7 @@ class WaveROM:
         return self.V.T @ ((w if z.ndim == 1 else w[:, None]) * self.g(z))
 
     def energy(self, Qh: np.ndarray, Vh: np.ndarray) -> np.ndarray:
-        """ROM energy 1/2 |v|^2 - 1/2 q^T Kh q + sum_i w_i U(V_i q), per column."""
+        """ROM energy ``1/2 |v|^2 - 1/2 q^T Kh q + sum_i w_i U(V_i q)``, per column."""
         pot = self._w() @ self.U(self.V @ Qh)
         return 0.5 * np.sum(Vh**2, axis=0) - 0.5 * np.einsum("ik,ij,jk->k", Qh, self.K, Qh) + pot
 
@@ -517,12 +517,12 @@ class WaveROM:
             p1    = (q1 - q0)/dt + dt/2 (Kh m - F(m)),
 
         each step solved by Newton with J = -I/dt + dt/4 (Kh - V^T diag(w g'(V m)) V), from
-        the predictor q1 = q0 + dt p0, stopped when |dq| <= tol max(|q1|, 1).
+        the predictor q1 = q0 + dt p0, stopped when ``|dq| <= tol max(|q1|, 1)``.
 
         Args:
             jacobian: ``"fresh"`` (Newton: J at every iterate) or ``"lazy"`` (simplified
                 Newton: the last J is kept, across steps too, and formed afresh at the next
-                iterate only when convergence slows, |dq_k| > theta |dq_{k-1}| with
+                iterate only when convergence slows, ``|dq_k| > theta |dq_{k-1}|`` with
                 theta = 0.1). Same stopping test; the converged states agree to the Newton
                 tolerance.
             backend: ``"numpy"`` (the reference loop, any g), ``"numba"`` (the compiled loop of

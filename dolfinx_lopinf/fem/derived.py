@@ -28,7 +28,7 @@ import numpy as np
 
 from ._dolfinx import MPI, dolfinx, ufl
 from ..errors import InputError
-from .fom import StateMap, gather_states
+from .state import StateMap, gather_states
 
 
 def _inverse(state_map: StateMap, n: int) -> np.ndarray:
@@ -137,7 +137,7 @@ class DerivedOutput:
 
     def from_reduced(self, basis, Qh):
         """Values from reduced coordinates Qh (r, K) and their basis (``.V``: (n, r)):
-        points -> (p, *shape, K) on every rank; field -> (n_W, K) on rank 0."""
+        points -> ``(p, *shape, K)`` on every rank; field -> (n_W, K) on rank 0."""
         Qh = np.asarray(Qh, dtype=float)
         Qh = Qh.reshape(-1, 1) if Qh.ndim == 1 else Qh
         V = np.asarray(basis.V if hasattr(basis, "V") else basis, dtype=float)

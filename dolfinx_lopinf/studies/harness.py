@@ -1,5 +1,5 @@
 """The demos' shared harness: command line, rank-0 gating, one metrics vocabulary, the JSON
-writer and the summary table. A demo keeps only what is specific to its scene.
+writer and the summary table. A demo keeps only what is specific to its scene::
 
     from dolfinx_lopinf.studies import harness
 

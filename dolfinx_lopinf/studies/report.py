@@ -1,21 +1,36 @@
-"""Speed against error, per scene, from the demos' metrics.json.
+"""Speed against error per scene, and the documentation's generated pages, from the demos'
+metrics.json.
 
-    python -m dolfinx_lopinf.studies.report [RESULTS_DIR]
+    python -m dolfinx_lopinf.studies.report [RESULTS_DIR ...]
+    python -m dolfinx_lopinf.studies.report --docs docs/generated RESULTS_DIR ...
 
-For every ``RESULTS_DIR/*/metrics.json`` it draws ``RESULTS_DIR/report_<scene>.png``: ROM
-wall time and inference time against test error for every method and r, with the FOM time
-as a reference line, and prints a markdown table of the best test error per method with what
-it cost. A user sees at a glance what a given error costs.
+Each RESULTS_DIR is a demo's output folder (holding metrics.json) or a folder of them
+(``results/*/metrics.json``). Without ``--docs`` it draws ``report_<scene>.png`` beside the
+metrics of each scene - ROM wall time and inference time against test error for every method
+and r, with the FOM time as a reference line - and prints a markdown table of the best test
+error per method with what it cost (also written to the first RESULTS_DIR as report.md).
+
+With ``--docs OUT`` it writes the generated part of the documentation instead
+(:func:`write_docs`): ``OUT/<scene>.md`` per demo - the command and mode (quick or default)
+that produced the metrics, the demo's tables, and every figure of its folder, copied to
+``OUT/<scene>/`` - and ``OUT/benchmarks.md``, the speed-against-error table and figure of every
+scene. Nothing in them is typed by hand; they are rewritten from the metrics whenever the
+demos run again. When a scene appears in several folders, a default-mode run wins over a
+quick one (and a later folder over an earlier one of the same mode).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
+
+from .report_tables import caption, error_kind, fmt, mode, n_dofs, provenance, scene_of, scene_tables
+
 
 
 class Point(NamedTuple):
@@ -35,7 +50,7 @@ def _rows(metrics: dict):
     writes the harness's vocabulary (:mod:`dolfinx_lopinf.studies.harness`): ``test_error`` of
     the scene's error kind, times as plain numbers."""
     out = []
-    for row in metrics.get("roms", []):
+    for row in metrics.get("roms") or []:
         err, rom_s = row.get("test_error"), row.get("rom_seconds")
         if err is None or rom_s is None or not np.isfinite(err):
             continue
@@ -48,8 +63,17 @@ def _rows(metrics: dict):
 
 
 def _fom_seconds(metrics: dict) -> float | None:
-    """The FOM's time over the ROMs' horizon (t_end)."""
-    return metrics.get("fom_seconds_to_t_end", metrics.get("fom_seconds"))
+    """The FOM's time over the ROMs' horizon (t_end); None where the metrics hold only a total
+    over many runs (the parametric studies: every training and test parameter)."""
+    seconds = metrics.get("fom_seconds_to_t_end", metrics.get("fom_seconds"))
+    if "affine_terms" in metrics or not isinstance(seconds, (int, float)):
+        return None
+    return seconds
+
+
+TABLE_HEADER = ["| scene | method | best r | test error | ROM s (loop) | ROM s, numpy loop | "
+                "FOM / ROM | inference s | FOM s |",
+                "|---|---|---|---|---|---|---|---|---|"]
 
 
 def scene_report(metrics: dict, path: Path) -> list[str]:
@@ -88,22 +112,149 @@ def scene_report(metrics: dict, path: Path) -> list[str]:
     return lines
 
 
+# -- the documentation's generated pages ---------------------------------------------------------
+
+class Run(NamedTuple):
+    """One demo's output folder: its scene, metrics and the folder."""
+
+    scene: str
+    metrics: dict
+    folder: Path
+
+
+def find_runs(folders) -> dict[str, Run]:
+    """scene -> the run the pages show: every ``metrics.json`` in ``folders`` (or one level
+    below them); a default-mode run wins over a quick one, a later folder over an earlier one."""
+    runs: dict[str, Run] = {}
+    for folder in map(Path, folders):
+        files = [folder / "metrics.json"] if (folder / "metrics.json").exists() \
+            else sorted(folder.glob("*/metrics.json"))
+        for f in files:
+            metrics = json.loads(f.read_text())
+            scene = scene_of(metrics, f.parent.name)
+            old = runs.get(scene)
+            if old is None or not (metrics.get("quick") and not old.metrics.get("quick")):
+                runs[scene] = Run(scene, metrics, f.parent)
+    return runs
+
+
+def _copy_figures(run: Run, out: Path) -> list[Path]:
+    """The run's PNG figures copied to ``out/<scene>/`` (emptied first); their new paths."""
+    target = out / run.scene
+    if target.exists():
+        shutil.rmtree(target)
+    target.mkdir(parents=True)
+    copied = []
+    for png in sorted(run.folder.glob("*.png")):
+        if png.name.startswith("report_"):
+            continue
+        shutil.copy2(png, target / png.name)
+        copied.append(target / png.name)
+    return copied
+
+
+def _boxed(lines: list[str]) -> list[str]:
+    """Every markdown table of ``lines`` inside a ``{container} numbers`` block (the
+    documentation's CSS keeps its numbers on one line)."""
+    out, inside = [], False
+    for line in lines + [""]:
+        table = line.startswith("|")
+        if table and not inside:
+            out += ["```{container} numbers", ""]
+        elif inside and not table:
+            out += ["```"]
+        out.append(line)
+        inside = table
+    return out[:-1]
+
+
+def scene_page(run: Run, out: Path) -> str:
+    """The markdown of ``out/<scene>.md``: provenance, tables, figures (their paths relative to the
+    documentation's source folder, ``/<out>/<scene>/...`` - OUT must be a folder directly in it,
+    e.g. docs/generated - so the page can be included from any page)."""
+    figures = _copy_figures(run, out)
+    lines = [provenance(run), ""]
+    lines += _boxed(scene_tables(run.scene, run.metrics))
+    if figures:
+        lines += ["", "### Figures", ""]
+        for png in figures:
+            text = caption(run.scene, png.name)
+            lines += [f"```{{figure}} /{out.name}/{run.scene}/{png.name}", f":alt: {text}", ":width: 100%", "",
+                      f"{text} (`{png.name}`)", "```", ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def benchmarks_page(runs: dict[str, Run], out: Path) -> str:
+    """The markdown of ``out/benchmarks.md``: per scene the run's mode and size, the best test
+    error of every method with what it cost, and the speed-against-error figure."""
+    lines = ["| scene | mode | state size n | FOM s (ROMs' horizon) | error measured |",
+             "|---|---|---|---|---|"]
+    for scene, run in sorted(runs.items()):
+        m = run.metrics
+        fom = _fom_seconds(m)
+        lines.append(f"| {scene} | {mode(m)} | {fmt(n_dofs(m))} | "
+                     f"{fmt(fom, 'seconds')} | {error_kind(m)} |")
+    lines += ["", "Best test error of every method (the smallest over r) and what it cost:", ""]
+    lines += TABLE_HEADER
+    figures = []
+    for scene, run in sorted(runs.items()):
+        if not _rows(run.metrics):
+            continue
+        png = out / scene / "speed_vs_error_report.png"
+        png.parent.mkdir(parents=True, exist_ok=True)
+        lines += [line.replace(f"| {run.metrics['scene']} |", f"| {scene} ({mode(run.metrics)}) |", 1)
+                  for line in scene_report(run.metrics, png)]
+        figures.append((scene, png))
+    lines = _boxed(lines)
+    for scene, png in figures:
+        lines += ["", f"```{{figure}} /{out.name}/{scene}/{png.name}", f":alt: {scene}: speed against error",
+                  ":width: 100%", "", f"{scene} ({mode(runs[scene].metrics)}): ROM and inference "
+                  "wall time against test error, every method and r; the dashed line is the "
+                  "FOM's time over the same horizon.", "```"]
+    return "\n".join(lines) + "\n"
+
+
+def write_docs(folders, out) -> list[Path]:
+    """Write ``out/<scene>.md`` for every scene found in ``folders`` and ``out/benchmarks.md``
+    (see the module docstring); returns the pages written. Pages and figure folders of scenes
+    not found are left as they are (a partial run updates only what it ran)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = find_runs(folders)
+    if not runs:
+        raise SystemExit(f"no metrics.json in {list(map(str, folders))} (or one level below): "
+                         "run the demos first")
+    written = []
+    for scene, run in sorted(runs.items()):
+        path = out / f"{scene}.md"
+        path.write_text(scene_page(run, out))
+        written.append(path)
+    path = out / "benchmarks.md"
+    path.write_text(benchmarks_page(runs, out))
+    written.append(path)
+    return written
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", nargs="?", default="results")
+    parser.add_argument("results", nargs="*", default=["results"],
+                        help="demo output folders, or folders of them (default: results)")
+    parser.add_argument("--docs", default=None, metavar="OUT",
+                        help="write the documentation's generated pages to OUT (e.g. docs/generated)")
     args = parser.parse_args(argv)
-    root = Path(args.results)
-    files = sorted(root.glob("*/metrics.json"))
-    if not files:
-        raise SystemExit(f"no */metrics.json under {root}: run the demos first")
-    table = ["| scene | method | best r | test error | ROM s (loop) | ROM s, numpy loop | "
-             "FOM / ROM | inference s | FOM s |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for f in files:
-        metrics = json.loads(f.read_text())
-        if not metrics.get("roms"):
+    if args.docs:
+        for path in write_docs(args.results, args.docs):
+            print(f"wrote {path}")
+        return None
+    runs = find_runs(args.results)
+    if not runs:
+        raise SystemExit(f"no metrics.json in {args.results} (or one level below): run the demos first")
+    table = list(TABLE_HEADER)
+    root = Path(args.results[0])
+    for _scene, run in sorted(runs.items()):
+        if not _rows(run.metrics):
             continue
-        table += scene_report(metrics, root / f"report_{f.parent.name}.png")
+        table += scene_report(run.metrics, run.folder.parent / f"report_{run.folder.name}.png")
     print("\n".join(table))
     (root / "report.md").write_text("\n".join(table) + "\n")
     return table

@@ -77,7 +77,8 @@ def run_case(size: str, solver: str, steps: int, out: Path, *, r: int = 2,
              petsc_options: dict | None = None) -> dict | None:
     """One case on MPI.COMM_WORLD (collective); rank 0 writes and returns the record."""
     from ..fem._dolfinx import MPI
-    from ..fem.fom import OutputProbe, run
+    from ..fem.fom import run
+    from ..fem.loop import OutputProbe
     from ..fem.streaming import StreamingPOD
     from ..scenes import fishtail as scene
 

@@ -1,11 +1,14 @@
 """Figures: pyvista off-screen field renders and matplotlib curves.
 
 pyvista and matplotlib are imported lazily, so the numpy core never needs them.
-Every function writes one PNG and returns its path.
+Every function writes one PNG and returns its path. Every curve figure has a title saying
+what is plotted and labelled axes; its legend sits beside the axes, never over the data, and
+long titles are wrapped rather than cut.
 """
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -29,16 +32,41 @@ def _pyplot():
     return plt
 
 
+#: where a legend goes: beside the axes (upper left corner just right of them), so it never
+#: covers a curve; ``savefig(bbox_inches="tight")`` keeps it in the picture
+BESIDE = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0}
+#: ... or below the axes (under the x label) when its labels are long: beside them, a legend
+#: of long labels would squeeze the axes into a narrow strip
+BELOW = {"loc": "upper left", "borderaxespad": 0.0}
+#: labels longer than this put the legend below the axes
+LONG_LABEL = 34
+
+
+def _wrap(title: str, width: int = 70) -> str:
+    """A long title on several lines instead of cut at the figure's edge."""
+    return "\n".join(textwrap.fill(line, width) for line in str(title).split("\n"))
+
+
 def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict | None = None) -> Path:
-    """Label, grid, legend (``legend``: extra ``ax.legend`` arguments, e.g. a place outside
-    the axes), save and close a one-axis matplotlib figure."""
+    """Label, grid, legend (beside the axes - below them when a label is longer than
+    LONG_LABEL characters - unless ``legend``, extra ``ax.legend`` arguments, says otherwise),
+    save and close a one-axis matplotlib figure."""
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
-    ax.set_title(title)
+    ax.set_title(_wrap(title))
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, **(legend or {}))
+    handles = (legend or {}).get("handles") or ax.get_legend_handles_labels()[0]
+    longest = max((len(h.get_label()) for h in handles), default=0)
+    where = BESIDE
+    if longest > LONG_LABEL:  # below the x label: where it ends, in axes coordinates
+        fig.tight_layout()
+        fig.canvas.draw()
+        box = ax.xaxis.label.get_window_extent(fig.canvas.get_renderer())
+        below = ax.transAxes.inverted().transform((0.0, box.y0))[1] - 0.03
+        where = BELOW | {"bbox_to_anchor": (0.0, below)}
+    ax.legend(fontsize=8, **(where | (legend or {})))
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
     import matplotlib.pyplot as plt
 
     plt.close(fig)
@@ -99,11 +127,19 @@ def beam_shapes(path, x: np.ndarray, shapes: dict, times: list, *, title: str = 
     return path
 
 
-def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
-    """Relative state error (train solid, test dashed) against r for every method, with the
-    test-window projection error as the floor."""
+def error_vs_r(path, rows: list[dict], *, title: str = "",
+               series=(("train_error", "train"), ("test_error", "test")),
+               floors=(("projection_error_test", "projection (test)"),),
+               ylabel: str = "relative state error") -> Path:
+    """Relative error against r for every method: ``series`` are (row key, label) pairs drawn
+    solid, dashed, dash-dotted, ... (default: the training and test errors), ``floors`` the
+    projection errors of the L-OpInf rows (dotted, black and grey) - what no ROM in this basis
+    can beat. The legend has one entry per method (colour and marker), one per series (line
+    style, e.g. "train [0, 0.03] s" solid, "test [0.03, 0.18] s" dashed) and the floors."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(6.4, 4.4))
+    from matplotlib.lines import Line2D
+
+    fig, ax = plt.subplots(figsize=(7.6, 4.4))
     # distinct markers so coinciding curves stay visible (L-OpInf: large hollow markers)
     styles = {"intrusive": ("intrusive", "C2", "^", 5, None),
               "opinf": ("standard OpInf", "C3", "x", 7, None),
@@ -112,37 +148,55 @@ def error_vs_r(path, rows: list[dict], *, title: str = "") -> Path:
               "lopinf_del": ("L-OpInf, DEL data", "C4", "s", 8, "none"),
               "lopinf_fd": ("L-OpInf, finite differences", "C5", "v", 7, "none"),
               "lopinf_mass_I": ("L-OpInf, Mh = I", "C6", "P", 7, "none")}
+    lines = ["-", "--", "-.", (0, (1, 1))]
+    handles = []
     for method, (label, color, marker, size, face) in styles.items():
         sel = sorted((r for r in rows if r["method"] == method), key=lambda r: r["r"])
         if not sel:
             continue
         rs = [r["r"] for r in sel]
         kw = dict(color=color, marker=marker, markersize=size, markerfacecolor=face)
-        ax.semilogy(rs, [min(r["train_error"], 1e3) for r in sel], "-", label=f"{label} train", **kw)
-        ax.semilogy(rs, [min(r["test_error"], 1e3) for r in sel], "--", label=f"{label} test", **kw)
+        for i, (key, _) in enumerate(series):
+            ax.semilogy(rs, [min(r[key], 1e3) for r in sel], linestyle=lines[i % len(lines)], **kw)
+        handles.append(Line2D([], [], linestyle="none", label=label, **kw))
+    handles += [Line2D([], [], color="0.3", linestyle=lines[i % len(lines)], label=name)
+                for i, (_, name) in enumerate(series)]
     sel = sorted((r for r in rows if r["method"] == "lopinf"), key=lambda r: r["r"])
-    ax.semilogy([r["r"] for r in sel], [r["projection_error_test"] for r in sel], "k:", label="projection (test)")
-    ax.legend(fontsize=7, ncol=2)
-    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel="relative state error",
-                   title=title)
+    for i, (key, name) in enumerate(floors):
+        if sel and all(key in r for r in sel):
+            handles += ax.semilogy([r["r"] for r in sel], [r[key] for r in sel], ":",
+                                   color=("k", "0.55")[i % 2], lw=1.6, label=name)
+    ax.set_xticks(sorted({r["r"] for r in rows}))
+    return _finish(fig, ax, path, xlabel="reduced dimension r", ylabel=ylabel, title=title,
+                   legend={"handles": handles})
 
 
 def curves(path, t: np.ndarray | dict, series: dict, *, ylabel: str, title: str = "",
            logy: bool = False, vline: float | None = None, xlabel: str = "t [s]",
-           colors: list | None = None) -> Path:
+           colors: list | None = None, markers: bool = False) -> Path:
     """Time series (label -> values) on one axis; ``t`` may be one array or label -> array.
-    The first series is drawn thicker (the reference); ``colors`` overrides the palette."""
+    The first series is drawn thicker (the reference); ``colors`` overrides the palette.
+    ``markers``: a distinct marker per series (for few points, e.g. against r; coinciding
+    curves stay visible), and integer x ticks at the points when every x is a whole number."""
     colors = colors or ["C7", "C0", "C3", "C2", "C1"]
+    shapes = ["o", "x", "^", "s", "v", "D", "P"]
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.0, 3.8))
+    xs = []
     for i, (label, values) in enumerate(series.items()):
-        tt = t[label] if isinstance(t, dict) else t
+        tt = np.asarray(t[label] if isinstance(t, dict) else t, dtype=float)
+        xs.append(tt)
         values = np.asarray(values, dtype=float)
         if logy:
             values = np.where(values > 0, values, np.nan)
-        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=colors[i % len(colors)])
+        kw = dict(marker=shapes[i % len(shapes)], markersize=9 - i % 4, markerfacecolor="none") \
+            if markers else {}
+        ax.plot(tt, values, lw=1.0 if i else 1.6, label=label, color=colors[i % len(colors)], **kw)
     if logy:
         ax.set_yscale("log")
+    x_all = np.concatenate(xs) if xs else np.array([])
+    if markers and x_all.size and np.all(x_all == np.round(x_all)):
+        ax.set_xticks(sorted(set(x_all.astype(int).tolist())))
     if vline is not None:
         ax.axvline(vline, color="k", ls=":", lw=1, label="end of training")
     return _finish(fig, ax, path, xlabel=xlabel, ylabel=ylabel, title=title)
@@ -160,11 +214,11 @@ def wave_shapes(path, x: np.ndarray, series: dict, *, title: str = "") -> Path:
                     ls="-" if i == 0 else "--", label=label.rsplit(" t=", 1)[0])
         ax.set_ylabel(f"q(x, {t})")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    axes[0].set_title(title)
+    axes[0].legend(fontsize=8, **BESIDE)
+    axes[0].set_title(_wrap(title))
     axes[-1].set_xlabel("x")
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
 
@@ -184,6 +238,12 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
 
 #: the fishtail's view: from above, lateral bending in the image plane
 TOP_VIEW = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]
+
+
+#: the colour bar of a deformed-shape panel when the caller gives none: three labels of two
+#: digits inside the panel (pyvista's five labels of three digits overlap in a narrow panel)
+DEFAULT_BAR = {"n_labels": 3, "fmt": "%.2g", "width": 0.6, "position_x": 0.3, "position_y": 0.04,
+               "title_font_size": 14, "label_font_size": 12}
 
 
 def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, titles=None,
@@ -220,7 +280,8 @@ def deformed_side_by_side(path, grid, frames: list[dict], *, magnify: float, tit
             warped = g.warp_by_vector("u", factor=magnify)
             plotter.add_mesh(outline, color="grey", line_width=1, opacity=0.5)  # undeformed outline
             plotter.add_mesh(warped, scalars="|u| [m]", cmap="viridis", clim=clim,
-                             show_scalar_bar=(i, j) == bar_at, scalar_bar_args=scalar_bar or {})
+                             show_scalar_bar=(i, j) == bar_at,
+                             scalar_bar_args=scalar_bar or DEFAULT_BAR)
             text = label if titles is None else f"{label}  {titles[i]}"
             plotter.add_text(text, font_size=9 if scalar_bar is None else 8, position="upper_left")
             if title and i == len(frames) - 1 and j == len(labels) - 1:
@@ -295,10 +356,10 @@ def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, y
         if vline is not None:
             ax.axvline(vline, color="k", ls=":", lw=1)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    axes[0].set_title(title + ("  (dotted: end of training)" if vline is not None else ""))
+        ax.legend(fontsize=8, **BESIDE)
+    axes[0].set_title(_wrap(title + ("  (dotted: end of training)" if vline is not None else "")))
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=130, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
 

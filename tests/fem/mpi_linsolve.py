@@ -7,8 +7,11 @@ import sys
 import numpy as np
 
 from dolfinx_lopinf.fem._dolfinx import MPI, PETSc, dolfinx, ufl
-from dolfinx_lopinf.fem.fom import OutputProbe, StateMap, gather_states, point_output_matrix, run
-from dolfinx_lopinf.fem.integrators import MidpointIntegrator, NewmarkIntegrator, rigid_body_modes
+from dolfinx_lopinf.fem.fom import run
+from dolfinx_lopinf.fem.loop import OutputProbe
+from dolfinx_lopinf.fem.state import StateMap, gather_states, point_output_matrix
+from dolfinx_lopinf.fem.integrators import MidpointIntegrator
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator, rigid_body_modes
 from dolfinx_lopinf.fem.lagrangian import LagrangianSystem
 
 # A stiffness-dominated step matrix, as in the fishtail: dt^2/4 K / M ~ 1e3 per element

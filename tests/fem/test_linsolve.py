@@ -13,7 +13,8 @@ pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 from dolfinx_lopinf.errors import InputError  # noqa: E402
 from dolfinx_lopinf.fem import linsolve  # noqa: E402
 from dolfinx_lopinf.fem._dolfinx import ufl  # noqa: E402
-from dolfinx_lopinf.fem.integrators import MidpointIntegrator, NewmarkIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.integrators import MidpointIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator  # noqa: E402
 from dolfinx_lopinf.fem.lagrangian import LagrangianSystem  # noqa: E402
 
 SCRIPT = Path(__file__).with_name("mpi_linsolve.py")
