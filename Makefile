@@ -11,7 +11,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick demo-existing fishtail fishtail-large bench lint test test-fast test-rounding venv clean docs docs-figures
+.PHONY: demo demo-quick demo-existing fishtail fishtail-large scaling bench lint test test-fast test-rounding venv clean docs docs-figures
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -39,6 +39,10 @@ fishtail: venv
 # >= 779,232 dofs, 2,000 Newmark steps on 2 ranks (MUMPS); the sine input only
 fishtail-large: venv
 	$(VENV)/bin/mpiexec -n 2 $(PY) demos/fishtail.py --size large --inputs sine --out $(OUT)/fishtail_large
+
+# cost against mesh size: the fishtail at ~100k-400k dofs on 1 and 2 ranks (one case at a time)
+scaling: venv
+	$(PY) -m dolfinx_lopinf.studies.scaling --sizes 100k,200k,400k --ranks 1,2 --steps 200 --out $(OUT)/scaling
 
 bench: venv
 	$(PY) -m dolfinx_lopinf.studies.benchmark --out $(OUT)/benchmark_inference.json
