@@ -237,12 +237,19 @@ def summarise(records: list[dict]) -> dict:
     """The table rows, the fitted exponents per (ranks, solver), and each case's output
     deviation from the direct solver's at the same size and ranks."""
     done = [r for r in records if "stopped" not in r]
+
+    def deviation(rec, ref):
+        if ref is None or ref is rec or len(ref["output"]) != len(rec["output"]):
+            return None
+        a, b = np.array(rec["output"]), np.array(ref["output"])
+        return float(np.abs(a - b).max() / np.abs(b).max())
+
     for rec in done:
-        ref = next((d for d in done if d["size"] == rec["size"] and d["ranks"] == rec["ranks"]
-                    and d["resolved_solver"] == "direct"), None)
-        if ref is not None and ref is not rec and len(ref["output"]) == len(rec["output"]):
-            a, b = np.array(rec["output"]), np.array(ref["output"])
-            rec["output_deviation_vs_direct"] = float(np.abs(a - b).max() / np.abs(b).max())
+        same = [d for d in done if d["size"] == rec["size"] and d["steps"] == rec["steps"]]
+        rec["output_deviation_vs_direct"] = deviation(rec, next(
+            (d for d in same if d["ranks"] == rec["ranks"] and d["resolved_solver"] == "direct"), None))
+        rec["output_deviation_vs_1_rank"] = deviation(rec, next(
+            (d for d in same if d["ranks"] == 1 and d["resolved_solver"] == rec["resolved_solver"]), None))
     exponents = {}
     for key in sorted({(r["ranks"], r["resolved_solver"]) for r in done}):
         group = sorted((r for r in done if (r["ranks"], r["resolved_solver"]) == key),
@@ -257,7 +264,8 @@ def summarise(records: list[dict]) -> dict:
     table = [{k: r.get(k) for k in ("n_dofs", "ranks", "resolved_solver", "setup_seconds",
                                      "seconds_per_step", "cpu_seconds_per_step", "iterations_per_step",
                                      "peak_gb_per_rank", "rom_output_error",
-                                     "output_deviation_vs_direct", "load_average")}
+                                     "output_deviation_vs_direct", "output_deviation_vs_1_rank",
+                                     "load_average")}
              for r in sorted(done, key=lambda r: (r["ranks"], r["resolved_solver"], r["n_dofs"]))]
     return {"table": table, "exponents": exponents,
             "stopped": [r for r in records if "stopped" in r]}
@@ -305,16 +313,16 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
 
 def _table(summary: dict) -> str:
     head = ("dofs", "ranks", "solver", "setup s", "s/step", "cpu s/step", "its", "GB/rank",
-            "ROM err", "dev vs direct", "load")
+            "ROM err", "dev vs direct", "dev vs 1 rank", "load")
     lines = [" | ".join(head)]
     for r in summary["table"]:
-        dev = r["output_deviation_vs_direct"]
+        dev, dev1 = r["output_deviation_vs_direct"], r["output_deviation_vs_1_rank"]
         lines.append(" | ".join([
             f"{r['n_dofs']:,}", str(r["ranks"]), r["resolved_solver"], f"{r['setup_seconds']:.1f}",
             f"{r['seconds_per_step']:.3f}", f"{r['cpu_seconds_per_step']:.3f}",
             f"{r['iterations_per_step']:.1f}", f"{r['peak_gb_per_rank']:.2f}",
             f"{r['rom_output_error']:.2e}", "-" if dev is None else f"{dev:.1e}",
-            f"{r['load_average']:.1f}"]))
+            "-" if dev1 is None else f"{dev1:.1e}", f"{r['load_average']:.1f}"]))
     for label, e in summary["exponents"].items():
         if e["exponent"] is not None:
             lines.append(f"exponent {label}: {e['exponent']:.2f} (cpu {e['exponent_cpu']:.2f})")
@@ -335,6 +343,8 @@ def main(argv=None):
     parser.add_argument("--max-gb", type=float, default=18.0,
                         help="stop a case whose processes hold more resident memory than this")
     parser.add_argument("--petsc-options", default=None, help="JSON dict of PETSc options")
+    parser.add_argument("--collect", action="store_true",
+                        help="run nothing: gather every case already in --out/cases into the JSON and figure")
     parser.add_argument("--case", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     from ..errors import InputError
@@ -357,10 +367,13 @@ def main(argv=None):
     if args.case:
         return run_case(sizes[0], solvers[0], args.steps, out, petsc_options=options)
     out.mkdir(parents=True, exist_ok=True)
+    summary_path = out / "scaling.json"
+    if args.collect:
+        records = [json.loads(p.read_text()) for p in sorted((out / "cases").glob("*.json"))]
+        return _write(out, records)
     bindir = Path(sys.executable).parent
     mpiexec = str(bindir / "mpiexec") if (bindir / "mpiexec").exists() else "mpiexec"
     records = []
-    summary_path = out / "scaling.json"
     for size in sizes:
         for n in ranks:
             for solver in solvers:
@@ -373,8 +386,13 @@ def main(argv=None):
                       f"ROM r=2 error {rec['rom_output_error']:.2e}"), flush=True)
                 summary = summarise(records)
                 summary_path.write_text(json.dumps({"cases": records, **summary}, indent=1))
+    return _write(out, records)
+
+
+def _write(out: Path, records: list[dict]) -> dict:
+    """scaling.json, scaling.png and the table on stdout."""
     summary = summarise(records)
-    summary_path.write_text(json.dumps({"cases": records, **summary}, indent=1))
+    (out / "scaling.json").write_text(json.dumps({"cases": records, **summary}, indent=1))
     figure(out / "scaling.png", records, summary["exponents"])
     print(_table(summary))
     return summary
