@@ -291,13 +291,18 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
             c = np.polyfit(np.log(n), np.log(s), 1)
             grid = np.geomspace(n.min(), n.max(), 20)
             axes[0].loglog(grid, np.exp(np.polyval(c, np.log(grid))), "-", color=colour, lw=1)
+        cpu = np.array([r["cpu_seconds_per_step"] for r in group])
+        axes[0].loglog(n, cpu, "x--", color=colour, lw=0.8,
+                       label=f"{label} (CPU s of the busiest rank)" + (
+                           "" if e["exponent_cpu"] is None else f": p = {e['exponent_cpu']:.2f}"))
         axes[1].loglog(n, [r["setup_seconds"] for r in group], "o-", color=colour, label=label)
         axes[2].loglog(n, [r["peak_gb_per_rank"] for r in group], "o-", color=colour, label=label)
     if done:
         n = np.array(sorted({r["n_dofs"] for r in done}), float)
         s0 = min(r["seconds_per_step"] for r in done if r["n_dofs"] == n[0])
         axes[0].loglog(n, s0 * n / n[0], "k:", lw=1, label="slope 1")
-    axes[0].set(xlabel="dofs", ylabel="wall seconds per Newmark step", title="time per step")
+    axes[0].set(xlabel="dofs", ylabel="seconds per Newmark step",
+                title="time per step (o wall, fitted line; x CPU)")
     axes[1].set(xlabel="dofs", ylabel="seconds", title="set-up (mesh to factorisation)")
     axes[2].set(xlabel="dofs", ylabel="GB", title="peak resident memory per rank")
     for ax in axes:
