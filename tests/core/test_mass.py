@@ -353,3 +353,49 @@ def test_the_bound_is_never_above_the_objective_on_near_exact_data(r):
     for dual in (Y, fractional.projected_dual(p, xs, Y)):
         c = p.certify(xs, dual, tau)
         assert c["bound"] <= c["phi"] + 1e-13 * abs(c["phi"]), c
+
+
+def test_a_cold_cache_fits_with_numpy_and_builds_the_kernels_aside(monkeypatch):
+    """backend="auto" with the compiled iteration not ready (a fresh machine: tens of seconds
+    of compilation): that fit runs the numpy iteration and the build starts in the background;
+    once ready, the compiled one. backend="numba" never falls back."""
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    p = _prepared().problem
+    started = []
+    monkeypatch.setattr(fc, "ready", lambda: False)
+    monkeypatch.setattr(fc, "compile_in_background", lambda: started.append(True))
+    cold = fractional.MassInteriorPoint().solve(p)[3]
+    assert cold.converged and cold.details["backend"] == "numpy" and started == [True]
+    assert fractional.MassInteriorPoint(backend="numba").solve(p)[3].details["backend"] == "numba"
+    monkeypatch.setattr(fc, "ready", lambda: True)
+    assert fractional.MassInteriorPoint().solve(p)[3].details["backend"] == "numba"
+
+
+def test_ready_reads_the_cache_of_this_source():
+    """ready() is True once the kernels are built (here or in numba's cache) - the check that
+    decides between the compiled and the numpy iteration must not claim a cold cache warm."""
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    fc.warm_up()
+    assert fc.ready()
+    assert fc._cached(fc._step.py_func)  # the index of this source and machine
+
+
+def _noop(a, b):
+    return a + b
+
+
+def test_a_function_never_compiled_is_not_cached():
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    assert not fc._cached(_noop)

@@ -7,10 +7,22 @@ equilibrated Cholesky with the numpy path's diagonal shifts, the refined directi
 exact pencil step lengths and the update; ``_estimate`` is ``_State.gap_estimate``. Python
 keeps the loop, the certificate (``FractionalProblem.certify``, called a few times per fit)
 and the stall test, so the iterates agree with the numpy path to rounding (tests). Kernels
-compile on first use with ``cache=True`` (:func:`warm_up`).
+compile with ``cache=True``; later processes load them from numba's cache.
+
+Cold cache. Compiling them (with the Mh = I kernels of :mod:`._compiled` they call) takes
+tens of seconds - LLVM optimising a 10 MB module - which a fresh machine (CI) would pay inside
+its first learned-mass fit. So ``backend="auto"`` runs the compiled iteration only when it
+is :func:`ready` (built in this process, or in numba's cache for this source and machine);
+otherwise that fit takes the numpy iteration (the same iterates to rounding) and
+:func:`compile_in_background` builds the kernels in a daemon thread (LLVM runs outside the
+GIL), for the fits after it and, through the cache, for later processes. ``backend="numba"``
+and :func:`warm_up` compile synchronously (a background build in progress is waited for).
 """
 
 from __future__ import annotations
+
+import threading
+import warnings
 
 import numpy as np
 
@@ -412,20 +424,26 @@ _HELPERS = ("_sym", "_theta", "_vech_blocks", "_blocks", "_kernel_block", "_schu
             "_chol_solve", "_inv_chol", "_spd_inv", "_pencil", "_direction", "_steps")
 
 
+_BUILD_LOCK = threading.RLock()  # one build at a time: kernels() waits for a background one
+_START_LOCK = threading.Lock()
+_BACKGROUND: list = []  # the background build's thread, once started
+
+
 def kernels() -> dict:
-    if not getattr(kernels, "_helpers_done", False):
-        from numba import njit
+    with _BUILD_LOCK:
+        if not getattr(kernels, "_helpers_done", False):
+            from numba import njit
 
-        from . import _compiled
+            from . import _compiled
 
-        g = globals()
-        ipm = _compiled.kernels()  # LAPACK dpotrf / BLAS dtrsv bound and compiled there
-        g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
-        g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
-        for name in _HELPERS:
-            g[name] = njit(cache=True, error_model="numpy")(g[name])
-        kernels._helpers_done = True
-    return _KERNELS.kernels()
+            g = globals()
+            ipm = _compiled.kernels()  # LAPACK dpotrf / BLAS dtrsv bound and compiled there
+            g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
+            g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
+            for name in _HELPERS:
+                g[name] = njit(cache=True, error_model="numpy")(g[name])
+            kernels._helpers_done = True
+        return _KERNELS.kernels()
 
 
 def warm_up() -> float | None:
@@ -433,6 +451,52 @@ def warm_up() -> float | None:
         return None
     kernels()
     return _KERNELS.compile_seconds
+
+
+def _cached(fn) -> bool:
+    """Whether numba's cache holds ``fn`` compiled from this source on this machine (its index
+    only - nothing is loaded or compiled; numba's own key: the machine and the bytecode)."""
+    from numba.core.caching import FunctionCache
+    from numba.core.registry import cpu_target
+
+    cache = FunctionCache(getattr(fn, "py_func", fn))
+    probe = cache._index_key("", cpu_target.target_context.codegen())
+    return any(key[1:] == probe[1:] for key in cache._cache_file._load_index())
+
+
+def ready() -> bool:
+    """Whether the compiled iteration runs now without compiling: built in this process, or
+    in numba's cache with the Mh = I kernels it calls (any doubt: False)."""
+    if _KERNELS.compile_seconds is not None:
+        return True
+    if _BACKGROUND or not _jit.available():  # a build under way holds numba's compiler lock
+        return False
+    try:
+        from . import _compiled
+
+        return all(_cached(globals()[name]) for name in _SIGNATURES) and \
+            all(_cached(getattr(_compiled, name)) for name in _compiled._SIGNATURES)
+    except Exception:  # noqa: BLE001 - numba's cache internals moved: compile when asked
+        return False
+
+
+def compile_in_background() -> None:
+    """Build the kernels in a daemon thread (once per process; module docstring)."""
+    with _START_LOCK:  # not _BUILD_LOCK: the build holds that for its whole duration
+        if _BACKGROUND or _KERNELS.compile_seconds is not None or not _jit.available():
+            return
+        thread = threading.Thread(target=_build_quietly, name="dolfinx_lopinf-mass-jit", daemon=True)
+        _BACKGROUND.append(thread)
+        thread.start()
+
+
+def _build_quietly() -> None:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            kernels()
+    except Exception:  # noqa: BLE001 - a failed build leaves the numpy iteration in use
+        pass
 
 
 def run(problem, xs, gap_tol, max_iter):

@@ -474,11 +474,13 @@ class MassInteriorPoint:
         xs = start(problem) if x0 is None else np.array(x0, dtype=float)
         run = _run_numpy
         if backend == "numba":
-            try:
-                from . import _fractional_compiled
-                run = _fractional_compiled.run
-            except ImportError:  # not built yet
+            from . import _fractional_compiled as fc
+
+            if self.backend == "auto" and not fc.ready():  # cold cache: numpy now, build aside
+                fc.compile_in_background()
                 backend = "numpy"
+            else:
+                run = fc.run
         xs, Y, tau, it, best, stopped, trace = run(problem, xs, self.gap_tol, self.max_iter)
         ok = best is not None and best["duality_gap"] <= self.gap_tol
         cert = Certificate("mass-ipm", ok, it, seconds=time.perf_counter() - t0, method="lmi-hkm",
