@@ -399,3 +399,23 @@ def test_a_function_never_compiled_is_not_cached():
     if not compiled.available():
         pytest.skip("numba unavailable")
     assert not fc._cached(_noop)
+
+
+def test_the_compensated_product_is_exact_where_extended_precision_is_not():
+    """G_k = sym(Y L_k^T) of near-exact data is a small difference of large terms (Y nearly
+    orthogonal to L_k's rows): _dot2 / _sym2 stay within their stated bound of the exact
+    value (rational arithmetic), where numpy's extended precision errs by ~1e-15 on a
+    1e-11 result."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((5, 30)) * 1e3
+    B = rng.standard_normal((5, 30))
+    A = A - (A @ np.linalg.pinv(B)) @ B  # A B^T ~ 1e-11 from terms ~1e3
+    exact = np.array([[float(sum(Fraction(a) * Fraction(b) for a, b in zip(A[i], B[j]))) for j in range(5)]
+                      for i in range(5)])
+    hi, lo, bound = fractional._dot2(A, B)
+    assert np.all(np.abs(hi + lo - exact) <= bound + 1e-300)
+    assert np.abs(hi + lo - exact).max() <= 1e-12 * np.abs(exact).max()
+    G, err = fractional._sym2(hi, lo, bound)
+    assert np.all(np.abs(G - 0.5 * (exact + exact.T)) <= err)

@@ -299,11 +299,11 @@ def _dot2(A, B):
     p = A.shape[1]
     s = np.zeros((A.shape[0], B.shape[0]))
     e = np.zeros_like(s)
+    (Ah, Al), (Bh, Bl) = halves(A), halves(B)
     for j in range(p):
         a, bcol = A[:, j][:, None], B[:, j][None, :]
         prod = a * bcol
-        ah, al = halves(a)
-        bh, bl = halves(bcol)
+        ah, al, bh, bl = Ah[:, j][:, None], Al[:, j][:, None], Bh[:, j][None, :], Bl[:, j][None, :]
         perr = ((ah * bh - prod) + ah * bl + al * bh) + al * bl
         t = s + prod
         z = t - s
