@@ -434,14 +434,13 @@ def _bind_helpers():
     g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
     g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
     for name in _HELPERS:
-        g[name] = njit(cache=True, error_model="numpy")(g[name])
+        g[name] = njit(cache=True, error_model="numpy")(getattr(g[name], "py_func", g[name]))
 
 
 _KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"), before=_bind_helpers,
                           unavailable="the compiled learned-mass interior point is unavailable")
 
 
-_BUILD_LOCK = threading.RLock()  # one build at a time: kernels() waits for a background one
 _START_LOCK = threading.Lock()
 _BACKGROUND: list = []  # the background build's thread, once started
 
@@ -449,15 +448,13 @@ _BACKGROUND: list = []  # the background build's thread, once started
 def kernels() -> dict:
     """The compiled kernels (compiled, or loaded from numba's cache, on the first call; a
     background build under way is waited for)."""
-    with _BUILD_LOCK:
-        return _KERNELS.kernels()
+    return _KERNELS.kernels()  # waits for a background build (compiled.BUILD_LOCK)
 
 
 def warm_up() -> float | None:
     """Compile (or load) the kernels now: the seconds it took in this process (0.0 when already
     done), or None when the JIT is unavailable or disabled."""
-    with _BUILD_LOCK:
-        return _KERNELS.warm_up()
+    return _KERNELS.warm_up()
 
 
 def _cached(fn) -> bool:
@@ -489,7 +486,7 @@ def ready() -> bool:
 
 def compile_in_background() -> None:
     """Build the kernels in a daemon thread (once per process; module docstring)."""
-    with _START_LOCK:  # not _BUILD_LOCK: the build holds that for its whole duration
+    with _START_LOCK:  # not compiled.BUILD_LOCK: the build holds that throughout
         if _BACKGROUND or _KERNELS.compile_seconds is not None or not _jit.available():
             return
         thread = threading.Thread(target=_build_quietly, name="dolfinx_lopinf-mass-jit", daemon=True)
