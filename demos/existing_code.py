@@ -31,7 +31,7 @@ import numpy as np
 import dolfinx_lopinf as lo  # imports dolfinx_solver first when the PyPI wheel is used
 from dolfinx_lopinf.studies import peers
 from dolfinx_lopinf.viz import render
-from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.state import output_matrix_in_state
 from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402  (after dolfinx_lopinf, for the PyPI wheel)

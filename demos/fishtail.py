@@ -6,7 +6,7 @@
    carbon centre beam ending at the point of interest (0, 0, 0.21) m, two pressure chambers.
 2. FOM from the UFL Lagrangian 1/2 rho |q_t|^2 - 1/2 sigma(q) : eps(q) on P2 tetrahedra, two
    materials, Rayleigh damping C = 1e-4 M + 2e-4 K, chamber pressures +u(t) / -u(t) (pre-
-   pressure u_pre = 0: METHOD.md gives no value), Newmark dt = 1e-3 s to T = 2 s, for the four
+   pressure u_pre = 0: the paper gives no value), Newmark dt = 1e-3 s to T = 2 s, for the four
    inputs (step, sine, ramp, sigmoid). Only the training window's states are kept; the POI
    output and the FOM energy are recorded for every step.
 3. L-OpInf from the training arrays (sine on [0, 0.4] s by default): POD, 8th-order
@@ -26,7 +26,8 @@ import numpy as np
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.viz import render
 from dolfinx_lopinf.fem._dolfinx import MPI
-from dolfinx_lopinf.fem.fom import FieldSnapshots, StateMap, gather_states, output_matrix_in_state
+from dolfinx_lopinf.fem.loop import FieldSnapshots
+from dolfinx_lopinf.fem.state import StateMap, gather_states, output_matrix_in_state
 from dolfinx_lopinf.fem.streaming import StreamingPOD
 from dolfinx_lopinf.fem.intrusive import reduced_matrix
 from dolfinx_lopinf.scenes import fishtail as scene
@@ -304,7 +305,7 @@ def _renders(out, V, state_map, fields, rom_plot, name, render_steps, gif_steps,
 
 def _reduced_input(nm, V, basis, state_map, comm):
     """V^T (b_left - b_right): the Galerkin input vector of u (pressures +u / -u)."""
-    from dolfinx_lopinf.fem.fom import owned_global_dofs
+    from dolfinx_lopinf.fem.state import owned_global_dofs
 
     W = state_map.to_dofs(basis)
     owned = owned_global_dofs(V)

@@ -5,7 +5,7 @@
 L-OpInf with Mh = I is exact only in a mass-orthonormal basis; a black-box user has a
 Euclidean POD basis. ``mass="learned"`` fits Mh too (dolfinx_lopinf/core/mass.py). Rows:
 
-* beam (METHOD.md scene 1, the paper's block POD of [0, 0.03] s, midpoint data relation
+* beam (docs/method.md#beam, the paper's block POD of [0, 0.03] s, midpoint data relation
   ``variational_data``): relative state error on the test window [0.03, 0.18] s for
   Mh = I, learned Mh, the intrusive Galerkin ROM and the projection, r = 4..20;
 * cantilever of demos/existing_code.py (Euclidean POD, Newmark relation, forced, damped):

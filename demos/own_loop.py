@@ -273,7 +273,7 @@ def _options(parser):
 
 
 def main(argv=None):
-    args = harness.parse(__doc__, argv, out="results/own_loop", quick="coarse mesh, short runs (~20 s)",
+    args = harness.parse(__doc__, argv, out="results/own_loop", quick="coarse mesh, short runs",
                          extra=_options)
     args.r = [int(x) for x in args.r.split(",")]
     out = args.out

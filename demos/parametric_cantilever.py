@@ -42,7 +42,7 @@ SIZES = {
 
 def main(argv=None):
     args = harness.parse(__doc__, argv, out="results/parametric_cantilever",
-                         quick="12 x 2 x 2 cells, 0.6 s, 4 training designs, r in {6, 10} (< 1 min)")
+                         quick="12 x 2 x 2 cells, 0.6 s, 4 training designs, r in {6, 10}")
     cfg = SIZES["quick" if args.quick else "default"]
     n_steps = int(round(cfg["t_end"] / cfg["dt"]))
     scene = pc.build(cfg["cells"])

@@ -43,7 +43,7 @@ SIZES = {
 
 def main(argv=None):
     args = harness.parse(__doc__, argv, out="results/parametric_membrane",
-                         quick="24 x 24 cells, 1.2 s, r in {8, 12} (< 1 min)",
+                         quick="24 x 24 cells, 1.2 s, r in {8, 12}",
                          extra=lambda p: p.add_argument("--study", default="both",
                                                         choices=["contrast", "radius", "both"]))
     cfg = SIZES["quick" if args.quick else "default"]

@@ -242,7 +242,7 @@ def step_time_vs_n(cfg, r, sizes=(2000, 20000), n_steps=2000):
 
 def v0_state(sg, v0_local):
     """The initial velocity in state order (gathered)."""
-    from dolfinx_lopinf.fem.fom import gather_states
+    from dolfinx_lopinf.fem.state import gather_states
 
     n_owned = sg.system.V.dofmap.index_map.size_local
     gathered = gather_states(sg.system.V, v0_local[:n_owned, None], sg.state_map)

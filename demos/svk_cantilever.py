@@ -57,7 +57,7 @@ from dolfinx_lopinf.fem import probes
 from dolfinx_lopinf.studies import harness
 from dolfinx_lopinf.viz import render
 from dolfinx_lopinf.fem._dolfinx import MPI
-from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.state import output_matrix_in_state
 from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import svk_cantilever as scene
 
@@ -148,7 +148,7 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     for a in cfg["train_amps"]:
         Qh = basis.project(runs[a][0].Q)
         datas.append(pl.midpoint_data(Qh, dt, half_step_inputs(a, Qh.shape[1] - 1, dt)))
-    data = pl._concat(datas)
+    data = pl.concat_data(datas)
     Qh_train = np.hstack([basis.project(runs[a][0].Q) for a in cfg["train_amps"]])
     models, fits = {}, {}
     # polynomial L-OpInf from black-box probes: one FOM midpoint step of h .. h/16 from lifted
@@ -230,8 +230,8 @@ def _simulate(method, rom, *args, atol=0.0, **kwargs):
     the two loops' states or None): the polynomial models run compiled (numba, when available)
     and again with the numpy reference loop; the assembled Galerkin ROMs run the numpy loop
     (their force is a DOLFINx assembly) with the simplified Newton (jacobian='lazy': a force
-    costs one assembly, its Jacobian r + 1; measured 2-3.6x faster than fresh Newton, states
-    equal to 7e-10). The compiled and numpy loops do the same arithmetic in another order, so
+    costs one assembly, its Jacobian r + 1, so keeping the Jacobian saves most of the work; the
+    states equal fresh Newton's to 7e-10). The compiled and numpy loops do the same arithmetic in another order, so
     they agree to rounding at first; over long runs of a nonlinear (chaotic) model the
     difference grows - recorded, not hidden."""
     kwargs.setdefault("on_failure", "stop")  # an unstable fit is a result of the comparison

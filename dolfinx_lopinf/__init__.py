@@ -40,7 +40,7 @@ _LAZY = {
     "LagrangianSystem": "fem.lagrangian",
     "run": "fem.fom",
     "write_vtx": "fem.vtx",
-    "point_output_matrix": "fem.fom",
+    "point_output_matrix": "fem.state",
 }
 
 

@@ -84,7 +84,7 @@ class LOpInfWarning(UserWarning):
 
 class IllConditionedDataWarning(LOpInfWarning, RuntimeWarning):
     """The data determine some operator directions only to within rounding; the fit was
-    regularised there (see :func:`dolfinx_lopinf.core.inference.gram_data`)."""
+    regularised there (see :func:`dolfinx_lopinf.core.gram.gram_data`)."""
 
 
 class SolverWarning(LOpInfWarning, RuntimeWarning):

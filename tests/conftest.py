@@ -23,10 +23,12 @@ HAVE_DOLFINX = importlib.util.find_spec("dolfinx") is not None
 PERTURB = float(os.environ.get("LOPINF_TEST_PERTURB", "0") or 0)
 #: the numerical core's entry points whose array arguments are perturbed
 PERTURBED_ENTRY_POINTS = ("infer_mechanical", "infer_opinf", "infer_wave", "infer_output", "pod",
-                          "gram_data", "point_data", "midpoint_data")
+                          "gram_data", "point_data", "midpoint_data", "identify")
 
 
 def _perturbed(a):
+    if isinstance(a, (list, tuple)):  # identify's pieces: [(Qh, times, U, ...), ...]
+        return type(a)(_perturbed(x) for x in a)
     if not (isinstance(a, np.ndarray) and a.dtype.kind == "f" and a.size):
         return a
     seed = int.from_bytes(hashlib.blake2b(a.tobytes(), digest_size=8).digest(), "little")

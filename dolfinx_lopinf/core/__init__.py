@@ -14,8 +14,8 @@ from .basis import Basis, pod
 from .ddt import derivatives
 from .fit import ReducedModel, fit
 from .identify import identify
-from .inference import (MechanicalOperators, infer_mechanical, infer_opinf, infer_output,
-                        infer_wave)
+from .gram import MechanicalOperators
+from .inference import infer_mechanical, infer_opinf, infer_output, infer_wave
 from .metrics import energy_error, relative_error
 from .polynomial import PolynomialROM, fit_polynomial, point_data
 from .rom import LagrangianROM, Trajectory, WaveROM

@@ -120,6 +120,20 @@ def check_int(value, name: str, minimum: int | None = None) -> int:
     return v
 
 
+def check_real(value, name: str) -> float:
+    """``value`` as a finite Python float (a real scalar: strings, bytes, complex numbers,
+    booleans and None refused)."""
+    try:
+        if isinstance(value, (str, bytes, complex, bool)) or value is None:
+            raise TypeError
+        x = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a real number, got {value!r}") from None
+    if not np.isfinite(x):
+        raise InputError(f"{name} must be finite, got {value!r}")
+    return x
+
+
 def check_positive(value, name: str) -> float:
     """``value`` as a positive finite float (a real scalar; bools and strings refused)."""
     a = None if isinstance(value, (bool, np.bool_, str, bytes)) else np.asarray(value)
@@ -180,16 +194,12 @@ def check_uniform_times(times, rtol: float = 1e-6) -> float:
 
 
 def pow2_scale(*arrays) -> float:
-    """A power of two close to the largest magnitude in ``arrays`` (1.0 if all are zero or
-    empty). Dividing by it is exact (barring subnormals) and brings the data near 1, so
-    sums of squares neither overflow (data ~ 1e160) nor underflow (data ~ 1e-170)."""
-    top = 0.0
-    for a in arrays:
-        if a.size:
-            top = max(top, float(np.max(np.abs(a))))
-    if not (top > 0 and np.isfinite(top)):
-        return 1.0
-    return float(np.ldexp(1.0, int(np.frexp(top)[1])))
+    """The power of two nearest to the largest magnitude in ``arrays`` (None entries and empty
+    arrays skipped; 1.0 if all are zero). Dividing by it is exact (barring subnormals) and
+    brings the data near 1, so sums of squares neither overflow (data ~ 1e160) nor underflow
+    (data ~ 1e-170)."""
+    big = max((float(np.abs(a).max()) for a in arrays if a is not None and a.size), default=0.0)
+    return 1.0 if big == 0 or not np.isfinite(big) else float(2.0 ** np.round(np.log2(big)))
 
 
 def fro_norm(a: np.ndarray) -> float:

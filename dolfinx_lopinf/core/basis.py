@@ -9,7 +9,7 @@ mass is exactly I - what L-OpInf assumes - at the price of using M, which a stri
 box would not give.
 Block-diagonal POD: for a state made of blocks (beam deflection w and rotation theta),
 V = diag(V_w, V_theta) with each block's own POD, so every reduced coordinate stays in one
-physical block (METHOD.md section 3).
+physical block.
 """
 
 from __future__ import annotations

@@ -93,7 +93,7 @@ def _affine_run(G, x, FT, n, k0, every, X, j):
     since = k0 % every  # steps since the last stored state
     for i in range(n):
         # row dot products, four rows at a time sharing the loads of x, each summed in SIMD
-        # lanes (reassoc, as a BLAS gemv does): 1.3x faster than one row at a time at 2r = 40
+        # lanes (reassoc, as a BLAS gemv does): fewer loads than one row at a time
         for a in range(0, d4, 4):
             s0 = 0.0
             s1 = 0.0
@@ -321,8 +321,8 @@ _SIGNATURES = {
 }
 # LLVM fast-math flags: 'contract' fuses a*b + c into one FMA (one rounding instead of two);
 # 'reassoc' lets dot products be summed in SIMD lanes (a different but equally exact summation
-# order, as any BLAS uses: 1.7x faster at 2r = 40, and the wave ROM's V^T diag(c) V over n
-# rows runs at BLAS speed). The LU keeps its plain order. No flag that
+# order, as any BLAS uses: vectorised dot products, so the wave ROM's V^T diag(c) V over n
+# rows runs as a BLAS would). The LU keeps its plain order. No flag that
 # assumes finite values, so a trajectory that blows up still shows inf/nan.
 _FASTMATH = {name: {"contract", "reassoc"} for name in ("_affine_run", "_sine_force", "_wave_sine_run")}
 # helpers first: a kernel is compiled against the compiled helpers it calls

@@ -1,4 +1,4 @@
-"""Finite-difference time derivatives of snapshot data (METHOD.md section 3).
+"""Finite-difference time derivatives of snapshot data: the continuous data relation.
 
 Eighth-order central differences on a uniform grid, time along the last axis:
 

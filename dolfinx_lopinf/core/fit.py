@@ -43,6 +43,7 @@ from .basis import Basis, from_svd, pod
 from ._checks import as_real_array
 from ..errors import FileFormatError, InputError, SchemeMismatchWarning, warn
 from .identify import Residual, identify, standard_members
+from ._blas import serial_blas
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
 from .rom import LagrangianROM, Trajectory, load_rom, save_rom
@@ -263,7 +264,14 @@ def _candidates(relations, masses, dampings):
 
 def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
     """Held-back error of every candidate (module docstring)."""
-    fit_part, held = split(pieces, holdout)
+    try:
+        fit_part, held = split(pieces, holdout)
+    except InputError as exc:  # name only what is still being chosen
+        still = [name for name, options in (("scheme", relations), ("mass", masses),
+                                            ("damping", dampings)) if len(options) > 1]
+        raise InputError(str(exc).split("; record longer")[0] + "; record longer, or pass "
+                         + " and ".join(f"{n}=" for n in still) + " (chosen automatically "
+                         "by comparing held-back predictions) to skip the comparison") from None
     backend = compiled.resolve_backend("auto")
     errors, notes = {}, {}
     for mass, damping, rel in _candidates(relations, masses, dampings):
@@ -308,6 +316,7 @@ def _label(mass, damping, rel):
     return f"{mass}/{'damped' if damping else 'undamped'}/{rel.spec}"
 
 
+@serial_blas  # small kernels: BLAS threads cost more than they give, and far more on a busy machine
 def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         basis: Basis | None = None, eps: float = 1e-8, ridge: float = RIDGE,
         strict: bool = False, holdout: float = 0.25) -> ReducedModel:

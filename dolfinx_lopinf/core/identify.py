@@ -25,6 +25,8 @@ predicts the same free response). The choice and the residuals are returned for 
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.linalg
 import scipy.optimize
@@ -32,7 +34,8 @@ import scipy.optimize
 from . import schemes as S
 from ..errors import InputError
 from .holdout import prediction_error, split
-from .inference import MechanicalOperators, _serial_blas
+from ._blas import serial_blas
+from .gram import MechanicalOperators
 
 #: a refinement (or a less standard member) must lower the relative residual this much
 CLEAR_GAIN = 2.0
@@ -299,7 +302,7 @@ def _refinements(residual: Residual, rho: dict):
     return [(n,) + c for n, c in out if c is not None]
 
 
-@_serial_blas
+@serial_blas
 def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25,
              check_r: int | None = None):
     """The scheme whose relation the data obey, and whose recurrence predicts them, best
@@ -395,6 +398,7 @@ def _load_kind(pieces) -> str:
     return "linear"
 
 
+@functools.lru_cache(maxsize=4096)
 def _signature(scheme, loads: str):
     """What of ``scheme``'s relation the data can see, or None (no closed form here).
 

@@ -1,4 +1,5 @@
-"""Error measures of METHOD.md section 5 (numpy only)."""
+"""Error measures of reduced models: relative state or output errors and energy errors
+(numpy only)."""
 
 from __future__ import annotations
 

@@ -62,7 +62,9 @@ import numpy as np
 from . import schemes
 from ._checks import as_real_array, check_positive
 from .basis import Basis, pod
-from .inference import RIDGE, _compress, _floor, _pow2_scale, _serial_blas
+from ._blas import serial_blas
+from ._checks import pow2_scale
+from .gram import RIDGE, MechanicalOperators, compress, psd_floor
 from .rom import LagrangianROM, Trajectory
 from .snapshots import Snapshots, check_scheme
 from . import lsq
@@ -438,7 +440,7 @@ def _run(rom, basis, dt, n_steps, t_end, q0, v0, inputs, every, backend):
 
 
 # -- the fit ---------------------------------------------------------------------------------
-@_serial_blas
+@serial_blas
 def _solve(relations, structure, eps, ridge, strict, solver, quiet=False):
     """The joint fit on the relation data (module docstring): (terms, certificate)."""
     s = structure
@@ -464,8 +466,8 @@ def _solve(relations, structure, eps, ridge, strict, solver, quiet=False):
                              "train at parameters where it acts")
         scale[(op, t)] = (th / top, top)
     Qm_all = [rel[3] for rel in relations]
-    c_state = _pow2_scale(*Qm_all, *[rel[1] for rel in relations])
-    c_input = _pow2_scale(*[rel[4] for rel in relations]) if m else 1.0
+    c_state = pow2_scale(*Qm_all, *[rel[1] for rel in relations])
+    c_input = pow2_scale(*[rel[4] for rel in relations]) if m else 1.0
     rows, names = [], []
     for op, t, k in blocks + free:
         w, _ = scale[(op, t)]
@@ -474,7 +476,7 @@ def _solve(relations, structure, eps, ridge, strict, solver, quiet=False):
         sym = SYMBOLS[op]
         names += [f"{sym}[{label(t)}]*row{i}" for i in range(rows[-1].shape[0])]
     target = np.hstack(Qm_all) / c_state
-    L, Z, cond, rank, _ = _compress(rows, target, names, ridge, strict,
+    L, Z, cond, rank, _ = compress(rows, target, names, ridge, strict,
                                     "[theta Qk; theta Qc; theta Qm; theta U]")
     problem = lsq.Problem(L, Z, len(blocks), eps, len(free) * m)
     t0 = time.perf_counter()
@@ -482,7 +484,7 @@ def _solve(relations, structure, eps, ridge, strict, solver, quiet=False):
     solve_seconds = time.perf_counter() - t0
     nb = len(blocks)
     S = np.stack([theta[:, i * r:(i + 1) * r] for i in range(nb)])
-    S = _floor(S, eps)
+    S = psd_floor(S, eps)
     theta = np.hstack(list(S) + [theta[:, nb * r:]])
     D = np.vstack(rows)
     resid = float(np.linalg.norm(theta @ D + target) / max(np.linalg.norm(target), 1e-300))
@@ -528,8 +530,6 @@ def _held_back_choice(pairs, scheme, structure, eps, ridge, solver, holdout):
     """{"structure": worst held-back error, "closure": ...} (module docstring of fit_affine)."""
     from . import compiled
     from .holdout import prediction_error, split
-    from .inference import MechanicalOperators
-
     backend = compiled.resolve_backend("auto")
 
     pieces = [(s.Q, s.times, s.U, s.input_times, None, None) for _, s in pairs]

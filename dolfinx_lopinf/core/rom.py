@@ -453,7 +453,7 @@ def load_rom(path) -> tuple[LagrangianROM, dict]:
 
 @dataclass(frozen=True)
 class WaveROM:
-    """Gray-box Lagrangian wave ROM  qh_tt = Kh qh - V^T (w * g(V qh))  (METHOD.md s. 4).
+    """Gray-box Lagrangian wave ROM  qh_tt = Kh qh - V^T (w * g(V qh))  (docs/method.md#wave-and-sine-gordon).
 
     It is the Euler-Lagrange equation of
     ``L_h = 1/2 |qh_t|^2 + 1/2 qh^T Kh qh - sum_i w_i U(V_i qh)``,

@@ -53,7 +53,7 @@ import re
 
 import numpy as np
 
-from ._checks import as_real_array, check_finite
+from ._checks import as_real_array, check_finite, check_real
 from ..errors import InputError
 
 _E_MINUS_1 = np.array([-1.0, 1.0])  # E - 1, ascending powers
@@ -64,18 +64,6 @@ def _poly(*factors) -> np.ndarray:
     for f in factors:
         out = np.convolve(out, np.asarray(f, dtype=float))
     return out
-
-
-def _number(value, name: str) -> float:
-    try:
-        if isinstance(value, (str, bytes, complex, bool)) or value is None:
-            raise TypeError
-        x = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a real number, got {value!r}") from None
-    if not np.isfinite(x):
-        raise InputError(f"{name} must be finite, got {value!r}")
-    return x
 
 
 class Scheme:
@@ -197,16 +185,16 @@ class GeneralizedAlpha(Scheme):
         if rho_inf is not None:
             if alpha_m is not None or alpha_f is not None:
                 raise InputError("give rho_inf or (alpha_m, alpha_f), not both")
-            rho = _number(rho_inf, "rho_inf")
+            rho = check_real(rho_inf, "rho_inf")
             if not 0.0 <= rho <= 1.0:
                 raise InputError(f"rho_inf must lie in [0, 1] (the spectral radius at infinite "
                                  f"frequency), got {rho_inf!r}")
             alpha_m, alpha_f = (2 * rho - 1) / (rho + 1), rho / (rho + 1)
         if alpha_m is None or alpha_f is None:
             raise InputError("GeneralizedAlpha needs rho_inf, or alpha_m and alpha_f")
-        am, af = _number(alpha_m, "alpha_m"), _number(alpha_f, "alpha_f")
-        g = 0.5 + af - am if gamma is None else _number(gamma, "gamma")
-        b = 0.25 * (g + 0.5) ** 2 if beta is None else _number(beta, "beta")
+        am, af = check_real(alpha_m, "alpha_m"), check_real(alpha_f, "alpha_f")
+        g = 0.5 + af - am if gamma is None else check_real(gamma, "gamma")
+        b = 0.25 * (g + 0.5) ** 2 if beta is None else check_real(beta, "beta")
         problems = []
         if g < 0.5 - 1e-12:
             problems.append(f"gamma = {g:.6g} < 1/2 (amplifies: negative numerical damping)")
@@ -343,7 +331,7 @@ class HHT(GeneralizedAlpha):
     family = "hht"
 
     def __init__(self, alpha=0.1):
-        a = _number(alpha, "alpha")
+        a = check_real(alpha, "alpha")
         if not 0.0 <= a <= 1.0 / 3.0 + 1e-12:
             hint = (f" (Hilber et al. write alpha = {a:g}; pass alpha={-a:g})" if -1 / 3 <= a < 0
                     else "")

@@ -6,9 +6,11 @@ Lagrangian (``affine``) and the FOM at any parameter (``param_fom``). Importing 
 DOLFINx."""
 
 from .derived import DerivedOutput
-from .fom import StateMap, output_matrix_in_state, point_output_matrix, run
+from .fom import run
+from .state import StateMap, output_matrix_in_state, point_output_matrix
 from .galerkin_nonlinear import GalerkinForce
-from .integrators import MidpointIntegrator, NewmarkIntegrator
+from .integrators import MidpointIntegrator
+from .newmark import NewmarkIntegrator
 from .intrusive import galerkin_rom
 from .lagrangian import LagrangianSystem
 from .probes import probe, probe_points

@@ -33,7 +33,7 @@ from ._dolfinx import PETSc, dolfinx, ufl
 from ..core.basis import Basis
 from ..core.parametric import OPERATORS, SYMBOLS, AffineStructure, ParametricModel, label
 from ..errors import InputError, InputTypeError, NonAffineParameterError
-from .fom import StateMap, gather_states
+from .state import StateMap, gather_states
 from .intrusive import dense_state_matrix, reduced_matrix
 from .lagrangian import LagrangianSystem
 

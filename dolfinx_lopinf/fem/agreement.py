@@ -23,8 +23,8 @@ The remedies, in the order a call meets them:
   arrays equal to 1e-10 relative (arrays through 4 x 64 block sums of their entries: rounding
   differences between ranks, 1e-16 to 1e-13, never decide a verdict; a difference shows unless
   it cancels in every block statistic). On one rank the call costs nothing; on two it costs
-  one allgather of a few kB (17 us measured for a small one on a loaded 2-core machine,
-  against 0.4-1.3 ms for one time step of the smallest FOM in the tests).
+  one allgather of a few kB, small against one time step of even the smallest FOM in the
+  tests.
 * :func:`together` - around a region where a rank may raise alone (the time loop with its
   sinks and inputs, writing a file, the black-box probe steps). When an exception leaves the
   region on one rank, that rank asks on a private duplicate of the communicator whether every
@@ -32,15 +32,13 @@ The remedies, in the order a call meets them:
   seconds, default 60). If all did, the exception propagates on every rank as usual. If the
   others went on, they are inside a collective that cannot complete: the rank prints its
   traceback and the reason and aborts the job (``MPI_Abort``) - a loud end instead of a hang.
-  The region costs one ``Comm.Dup`` and ``Free`` (14 us measured on 2 ranks) and nothing per
-  step; the deadline is only ever waited for on the failure path.
+  The region costs one ``Comm.Dup`` and ``Free`` and nothing per step; the deadline is only ever waited for on the failure path.
 * The process-wide safety net, :mod:`dolfinx_lopinf._mpi_abort`: an exception left uncaught
   on one rank (anywhere in the user's program, e.g. ``lo.fit`` refusing one rank's data before
   a barrier) aborts the job after its traceback.
 
-Not done: a deadline on every *entry* (a timed barrier before each function). Measured, it
-would cost little (23 us against 17 us for the plain allgather on 2 ranks), but no deadline is
-safe there: ranks legitimately reach an entry minutes apart (rank 0 fitting a model alone
+Not done: a deadline on every *entry* (a timed barrier before each function). It would cost
+little (about what the plain allgather costs), but no deadline is safe there: ranks legitimately reach an entry minutes apart (rank 0 fitting a model alone
 while the others wait for the next call), so any default would abort correct programs. A
 rank that never reaches an entry because it raised is handled by :func:`together` and the
 safety net instead.
@@ -62,7 +60,7 @@ from .. import errors
 from .._mpi_abort import _summary, abort
 from ..errors import InputError, RanksDisagreeError
 
-__all__ = ["agree", "check", "together", "digest", "same"]
+__all__ = ["agree", "arrive", "check", "together", "digest", "same"]
 
 #: seconds a rank that raised alone waits for the others before aborting (LOPINF_MPI_TIMEOUT)
 DEFAULT_TIMEOUT = 60.0
@@ -307,3 +305,25 @@ def together(comm, where: str):
         raise
     finally:
         dup.Free()
+
+
+def arrive(comm, where: str, hint: str) -> None:
+    """Wait until every rank has reached ``where`` (a non-blocking barrier). A rank that waits
+    longer than ``LOPINF_MPI_TIMEOUT`` seconds says so on stderr, once, with ``hint`` (how the
+    call must be made), and keeps waiting: a collective called on some ranks only - e.g.
+    ``if comm.rank == 0: rec.snapshots()`` - is then named instead of hanging silently. It does
+    not abort: ranks may legitimately arrive minutes apart."""
+    if comm.size == 1:
+        return
+    # on the communicator itself: a Dup would already block until every rank arrives
+    request = comm.Ibarrier()
+    start, limit, pause, told = time.monotonic(), _timeout(), 1e-4, False
+    while not request.Test():
+        if not told and time.monotonic() - start > limit:
+            sys.stderr.write(
+                f"dolfinx_lopinf: rank {comm.rank} of {comm.size} has waited {limit:.0f} s in "
+                f"{where} for the other ranks. {hint}\n")
+            sys.stderr.flush()
+            told = True
+        time.sleep(pause)
+        pause = min(2 * pause, 0.05)

@@ -1,4 +1,5 @@
-"""Checkpoints of :func:`dolfinx_lopinf.fem.fom.run`: the files, the run's fingerprint, resuming.
+"""Checkpoints of :func:`dolfinx_lopinf.fem.fom.run`: the files, the run's fingerprint, resuming,
+and the sink of the time loop that writes them (:class:`CheckpointSink`).
 
 Per rank r and prefix P: two head files P.rank<r>.npz and P.rank<r>.b.npz written in turn
 (the previous head stays valid while the next one is written, so the ranks can always agree
@@ -6,7 +7,7 @@ on a step all of them have), and append-only chunk files P.rank<r>.part<c>.npz h
 was recorded between checkpoint c-1 and c (state and velocity columns, energies, outputs).
 A head holds the integrator state (q, p, t, k), the run's fingerprint and a CRC of every
 chunk it refers to. Each checkpoint writes one chunk and one head, each atomically
-(:class:`~dolfinx_lopinf.fem.fom.CheckpointSink`).
+(:class:`CheckpointSink`).
 
 The fingerprint is everything that determines the trajectory: the settings (exact) and
 sketches (random projections) of the assembled forms at probe states; a checkpoint resumes
@@ -19,14 +20,17 @@ import hashlib
 import json
 import os
 import re
+import time
 import zlib
 from pathlib import Path
 
 import numpy as np
 
 from ._dolfinx import PETSc, dolfinx
+from ..core.io_atomic import atomic_savez
 from ..errors import CheckpointMismatchError, FileFormatError, InputError
 from .agreement import agree
+from .loop import OutputProbe, Sink
 
 fpetsc = dolfinx.fem.petsc
 
@@ -273,3 +277,77 @@ def _checkpoint_files(checkpoint, rank: int) -> _CheckpointFiles:
         raise InputError(f"checkpoint = {str(checkpoint)!r}: the directory {directory} is not "
                          "writable")
     return _CheckpointFiles(prefix, rank)
+
+
+class CheckpointSink(Sink):
+    """Every ``every`` steps (not at the last one) append what ``recorder`` and ``probe``
+    recorded since the previous checkpoint to a chunk file and write the integrator state to
+    a head file (each atomically); see the format notes above :func:`_crc`. ``recorder``: the
+    run's :class:`~dolfinx_lopinf.fem.fom.StateRecorder`."""
+
+    def __init__(self, files: _CheckpointFiles, fingerprint: dict, recorder,
+                 probe: OutputProbe | None, *, every: int):
+        self.files, self.fingerprint, self.every = files, fingerprint, every
+        self.recorder, self.probe = recorder, probe
+        self.j = self.ne = self.ny = 0
+        self.crc, self.bytes, self.seconds = [], 0, 0.0
+
+    def after(self, s):
+        if s.k % self.every == 0 and s.k < s.n_steps:
+            self.save(s)
+
+    def save(self, s):
+        t_save = time.perf_counter()
+        rec, probe, it = self.recorder, self.probe, s.integrator
+        c = len(self.crc)
+        p_out = probe.E.shape[0] if probe is not None else 0
+        ys = probe.values if probe is not None else []
+        y_times = probe.times if probe is not None else []
+        chunk = {"Q": rec.Q[:, self.j:rec.filled],
+                 "Vel": rec.Vel[:, self.j:rec.filled] if rec.Vel is not None else np.zeros((0, 0)),
+                 "energies": np.array(rec.energies[self.ne:], dtype=float),
+                 "energy_times": np.array(rec.energy_times[self.ne:], dtype=float),
+                 "ys": (np.array(ys[self.ny:], dtype=float).reshape(-1, p_out) if p_out
+                        else np.zeros((0, 0))),
+                 "y_times": np.array(y_times[self.ny:], dtype=float)}
+        atomic_savez(self.files.chunk(c), **chunk)
+        crcs = self.crc + [_crc(chunk)]
+        head = self.files.heads[len(crcs) % 2]
+        atomic_savez(head, format=np.array(_FORMAT),
+                     fingerprint=np.array(json.dumps(self.fingerprint)), k=np.array(s.k),
+                     q=it.q.x.array, p=it.p.array, t=np.array(it.t),
+                     n_chunks=np.array(len(crcs)), chunk_crc=np.array(crcs, dtype=np.int64),
+                     filled=np.array(rec.filled))
+        self.j, self.ne, self.ny, self.crc = rec.filled, len(rec.energies), len(ys), crcs
+        self.bytes += self.files.chunk(c).stat().st_size + head.stat().st_size
+        self.seconds += time.perf_counter() - t_save
+
+    def restore(self, integrator, head, chunks) -> int:
+        """Put a resumed checkpoint back into the integrator, recorder and probe; return the
+        first step still to take."""
+        rec, probe = self.recorder, self.probe
+        k_start = int(head["k"]) + 1
+        integrator.q.x.array[:] = head["q"]
+        integrator.p.array[:] = head["p"]
+        integrator.t = float(head["t"])
+        integrator.steps_taken = k_start - 1
+        j0 = 0
+        for data in chunks:
+            j1 = j0 + data["Q"].shape[1]
+            rec.Q[:, j0:j1] = data["Q"]
+            if rec.Vel is not None:
+                rec.Vel[:, j0:j1] = data["Vel"]
+            j0 = j1
+            rec.energies.extend(data["energies"].tolist())
+            rec.energy_times.extend(data["energy_times"].tolist())
+            if probe is not None:
+                probe.values.extend(list(data["ys"]))
+                probe.times.extend(data["y_times"].tolist())
+        rec.filled = j0
+        self.j, self.ne = rec.filled, len(rec.energies)
+        self.ny = len(probe.values) if probe is not None else 0
+        self.crc = [int(c) for c in head["chunk_crc"]]
+        return k_start
+
+    def finish(self, s):
+        self.files.remove_all()

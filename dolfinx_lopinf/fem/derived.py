@@ -28,7 +28,7 @@ import numpy as np
 
 from ._dolfinx import MPI, dolfinx, ufl
 from ..errors import InputError
-from .fom import StateMap, gather_states
+from .state import StateMap, gather_states
 
 
 def _inverse(state_map: StateMap, n: int) -> np.ndarray:

@@ -40,7 +40,7 @@ from ..core._checks import check_positive
 from ..core.hyper import nnls_tolerance
 from ..errors import InputError
 from .agreement import agree
-from .fom import StateMap, _map_key
+from .state import StateMap, _map_key
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ import numpy as np
 from ._dolfinx import PETSc, dolfinx
 from ..errors import InputError
 from .agreement import agree
-from .fom import StateMap, _map_key, owned_global_dofs
+from .state import StateMap, _map_key, owned_global_dofs
 from .lagrangian import LagrangianSystem
 from ..core.rom import LagrangianROM
 

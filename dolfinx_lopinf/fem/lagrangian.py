@@ -1,4 +1,4 @@
-"""From a continuous Lagrangian in UFL to every form the FOM needs (METHOD.md s. 1-2).
+"""From a continuous Lagrangian in UFL to every form the FOM needs (docs/method.md#discrete-euler-lagrange).
 
 The user writes L(q, q_t) as a scalar UFL form in two dolfinx Functions on their own
 function space (configuration ``q`` and velocity ``q_t``), optionally a nonconservative

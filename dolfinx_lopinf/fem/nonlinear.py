@@ -1,7 +1,7 @@
 """Gray-box nonlinearity: find the non-quadratic potential in the user's UFL Lagrangian.
 
 For nonlinear waves the discrete equations are  q_tt = K q - f_nl(q)  with a pointwise
-f_nl(q)_i = U_nl'(q_i) (METHOD.md section 1). We identify U_nl from the form itself:
+f_nl(q)_i = U_nl'(q_i) (docs/method.md#wave-and-sine-gordon). We identify U_nl from the form itself:
 
 1. split every integral of L into additive terms;
 2. a term is *non-quadratic* when its third derivative in q is not zero; such terms must

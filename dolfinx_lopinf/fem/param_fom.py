@@ -28,7 +28,7 @@ from ._dolfinx import MPI, dolfinx
 from ..core import schemes
 from ..core.snapshots import Snapshots
 from ..errors import InputError
-from .fom import gather_states
+from .state import gather_states
 from .integrators import _check_dt, _check_homogeneous, _destroy, _direct_solver, _unique_prefix
 
 fpetsc = dolfinx.fem.petsc

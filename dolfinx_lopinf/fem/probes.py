@@ -56,7 +56,7 @@ from ..core._checks import check_int, check_positive
 from ..errors import InputError, LOpInfWarning, StepFailedError
 from ._dolfinx import MPI, PETSc
 from .agreement import agree, together
-from .fom import StateMap, _map_key
+from .state import StateMap, _map_key
 from .integrators import MidpointIntegrator
 from .lagrangian import LagrangianSystem
 

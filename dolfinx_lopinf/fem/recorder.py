@@ -38,7 +38,8 @@ import numpy as np
 
 from ._dolfinx import dolfinx
 from ..errors import InputError
-from .fom import StateMap, gather_states
+from .agreement import agree, arrive
+from .state import StateMap, gather_states
 from .lagrangian import _on_space
 from ..core.snapshots import Snapshots, check_scheme
 
@@ -272,10 +273,10 @@ class SnapshotRecorder:
 
     def sink(self, *, every: int = 1, until_step: int | None = None, velocity: bool = False,
              inputs=None):
-        """A sink of :func:`dolfinx_lopinf.fem.fom.run_loop`: :meth:`record` the integrator's
+        """A sink of :func:`dolfinx_lopinf.fem.loop.run_loop`: :meth:`record` the integrator's
         state (and ``velocity``, and ``inputs(t)`` if given) at every ``every``-th step up to
         ``until_step``. A recorder made without ``scheme`` takes the integrator's."""
-        from .fom import Every
+        from .loop import Every
 
         def record(s):
             if self.scheme is None:
@@ -289,6 +290,13 @@ class SnapshotRecorder:
         """Gather everything to rank 0 as :class:`Snapshots` (None on the other ranks)."""
         if len(self._times) < 2:
             raise InputError("record at least two time steps before asking for snapshots")
+        arrive(self.V.mesh.comm, "SnapshotRecorder.snapshots()",
+               "snapshots() gathers every rank's rows: call it on every rank (it returns None "
+               "off rank 0), not inside `if comm.rank == 0:`")
+        agree(self.V.mesh.comm, "SnapshotRecorder.snapshots()",
+              scheme="" if self.scheme is None else self.scheme.spec, samples=len(self._times),
+              inputs=len(self._inputs), velocities=len(self._velocities),
+              accelerations=len(self._accelerations))
         gather = (lambda rows: gather_states(self.V, np.column_stack(rows), self.state_map)
                   if rows else None)
         Q, Vel, Acc = gather(self._states), gather(self._velocities), gather(self._accelerations)

@@ -167,9 +167,9 @@ class StreamingPOD:
         return int(np.sum(sv > rank_rtol * max(sv[0], np.finfo(float).tiny)))
 
     def sink(self, *, every: int = 1, until_step: int | None = None):
-        """A sink of :func:`dolfinx_lopinf.fem.fom.run_loop` that appends the integrator's state
+        """A sink of :func:`dolfinx_lopinf.fem.loop.run_loop` that appends the integrator's state
         at every ``every``-th step up to ``until_step`` (step 0 included)."""
-        from .fom import Every
+        from .loop import Every
 
         return Every(lambda s: self.append(s.q), every=every, until_step=until_step)
 

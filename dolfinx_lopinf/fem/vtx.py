@@ -7,9 +7,9 @@ that opens in ParaView next to the FOM's own output.
     rows = state_rows(V, lambda x: np.isclose(x[2], 1.0))   # the state rows on a face
     write_vtx("top.bp", V, basis.reconstruct(traj.Qh, rows=rows), traj.times, rows=rows)
 
-A state vector has the layout of :class:`~dolfinx_lopinf.fem.fom.StateMap`: state[i] =
+A state vector has the layout of :class:`~dolfinx_lopinf.fem.state.StateMap`: state[i] =
 scale[i] * dofs[order[i]] in global dof numbering, as :class:`~dolfinx_lopinf.fem.recorder.
-SnapshotRecorder` and :func:`~dolfinx_lopinf.fem.fom.gather_states` gather it. The functions here
+SnapshotRecorder` and :func:`~dolfinx_lopinf.fem.state.gather_states` gather it. The functions here
 apply the exact inverse (dofs[order] = state / scale), then give each rank its owned dofs and
 update the ghosts, so SnapshotRecorder -> states -> :func:`write_vtx` round-trips for any number
 of ranks (the default state map is the recorder's default, ``StateMap.identity``: row i is
@@ -53,7 +53,7 @@ from ..core.io_atomic import (recover_folder, remove_stale_temporaries, swap_fol
 from ._dolfinx import MPI, dolfinx
 from ..errors import InputError, OutOfSpaceError
 from .agreement import agree, together
-from .fom import StateMap, _map_key, owned_global_dofs
+from .state import StateMap, _map_key, owned_global_dofs
 
 __all__ = ["state_rows", "states_to_function", "write_vtx"]
 

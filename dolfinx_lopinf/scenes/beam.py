@@ -1,4 +1,4 @@
-"""Euler-Bernoulli beam, simply supported (METHOD.md section 6).
+"""Euler-Bernoulli beam, simply supported (docs/method.md#beam).
 
     L = integral( 1/2 mu w_t^2 - 1/2 EI w_xx^2 ) dx   on [0, l],  w(0) = w(l) = 0,
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
-from ..fem.fom import StateMap, point_output_matrix
+from ..fem.state import StateMap, point_output_matrix
 from ..fem.lagrangian import LagrangianSystem
 from ..errors import InputError
 

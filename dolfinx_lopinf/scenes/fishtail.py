@@ -6,7 +6,7 @@
                                    -(u_pre - u(t)) n . dq  on the right walls,
 
 clamped at the root (z = 0), Rayleigh damping C = alpha M + beta K, Newmark dt = 1e-3 s.
-Materials (METHOD.md): hull lambda = 2.03e5, mu = 8.45e3 N/m^2; beam rho = 1.40e3,
+Materials (docs/method.md#fishtail): hull lambda = 2.03e5, mu = 8.45e3 N/m^2; beam rho = 1.40e3,
 lambda = 1.71e10, mu = 1.14e10. The hull density: the paper prints 1.07e-3 kg/m^3 and a
 silicone has 1.07e3; both are available (``hull_density="paper" | "silicone"``). With the
 printed value the hull is quasi-static (its modes sit at hundreds of Hz and are damped by
@@ -28,8 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fem._dolfinx import MPI, PETSc, dolfinx, ufl
-from ..fem.fom import EnergyProbe, OutputProbe, Progress, point_output_matrix, run
-from ..fem.integrators import NewmarkIntegrator, rigid_body_modes
+from ..fem.fom import run
+from ..fem.loop import EnergyProbe, OutputProbe, Progress
+from ..fem.state import point_output_matrix
+from ..fem.newmark import NewmarkIntegrator, rigid_body_modes
 from ..fem.lagrangian import LagrangianSystem
 from . import fishtail_geometry as geometry
 

@@ -1,4 +1,4 @@
-"""Soft-robotic fishtail geometry (gmsh OpenCASCADE), METHOD.md section 6.
+"""Soft-robotic fishtail geometry (gmsh OpenCASCADE), docs/method.md#fishtail.
 
 Used by :mod:`dolfinx_lopinf.scenes.fishtail`; ``meshes/fishtail.py`` (in the source tree)
 is the command-line script that writes it to a .msh file with :func:`write_msh`.

@@ -1,4 +1,4 @@
-"""Sine-Gordon on a periodic domain (METHOD.md section 6).
+"""Sine-Gordon on a periodic domain (docs/method.md#wave-and-sine-gordon).
 
     L = integral( 1/2 q_t^2 - 1/2 q_x^2 - (1 - cos q) ) dx   on [-20, 20), periodic,
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fem._dolfinx import MPI, dolfinx, ufl
-from ..fem.fom import StateMap
+from ..fem.state import StateMap
 from ..fem.lagrangian import LagrangianSystem
 
 X_LEFT, X_RIGHT = -20.0, 20.0
@@ -53,10 +53,6 @@ class SineGordon:
     x: np.ndarray  # (n,) arclength coordinate of the states, sorted
     x_local: np.ndarray  # arclength coordinate of the local dofs
     h: float
-
-    def local_values(self, f):
-        """Local dof array of f(x) (f a numpy function of the arclength coordinate)."""
-        return f(self.x_local)
 
 
 def closed_mesh(n: int, length: float, comm=MPI.COMM_WORLD):

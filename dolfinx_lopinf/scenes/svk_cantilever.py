@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fem._dolfinx import MPI, dolfinx, ufl
-from ..fem.fom import StateMap, point_output_matrix
+from ..fem.state import StateMap, point_output_matrix
 from ..fem.lagrangian import LagrangianSystem
 from ..errors import InputError
 

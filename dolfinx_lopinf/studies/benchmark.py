@@ -19,10 +19,11 @@ and reports objective gaps and minimum eigenvalues, on three data sets:
                    unconstrained fit is indefinite (the PSD constraints are active);
 3. ``wave``      - the symmetric-only wave problem (Kh = Kh^T, qh_tt = Kh qh - Fh);
 4. ``rigid``, ``mixed``, ``short`` - forced data where BOTH Kh and Ch are active at the
-                   optimum (:func:`active_data`: rigid-body modes, overdamped + undamped +
-                   softening modes, a short noisy record);
+                   optimum (:func:`~dolfinx_lopinf.core.synthetic.active_data`: rigid-body
+                   modes, overdamped + undamped + softening modes, a short noisy record);
 5. ``chain``     - held-out style: a free-free spring chain, two inputs, half the dampers
-                   missing (:func:`chain_data`; in ``--table``). Its fits take more
+                   missing (:func:`~dolfinx_lopinf.core.synthetic.chain_data`; in
+                   ``--table``). Its fits take more
                    iterations (13 at r = 12, K = 993, where the others take 8-11), not
                    more time per iteration (per-phase CPU time at K = 993: the same cost
                    per iteration as the other kinds); a whole ``infer_mechanical`` call
@@ -58,7 +59,7 @@ import numpy as np
 
 from ..core import inference, lsq
 from ..core.ddt import derivatives
-from ..core.rom import LagrangianROM
+from ..core.synthetic import ACTIVE_KINDS, HELD_OUT_KINDS, MASS_KINDS, mechanical_data, wave_data
 
 R_VALUES = list(range(2, 21, 2))
 K_VALUES = [3000, 6000, 10000]
@@ -119,139 +120,6 @@ def beam_data(k_max: int):
     snaps, _ = run(b.system, q0, v0, scene.DT, k_max * scene.DT, state_map=b.state_map,
                    record_velocity=False, energy_every=0, progress=False)
     return snaps
-
-
-def forced_data(r, n, seed=0):
-    rng = np.random.default_rng(seed)
-    A = rng.standard_normal((r, r))
-    K = A @ A.T / r + 0.5 * np.eye(r)
-    Cm = rng.standard_normal((r, r))
-    C = 0.05 * Cm @ Cm.T / r + 0.01 * np.eye(r)
-    B = rng.standard_normal((r, 1))
-    freqs = rng.uniform(0.5, 3.0, size=3)
-
-    def u(t):
-        return np.array([np.sin(freqs * t).sum()])
-
-    dt = 2e-3
-    tr = LagrangianROM(K=K, C=C, B=B).simulate(rng.standard_normal(r), rng.standard_normal(r),
-                                               dt, n + 7, inputs=u)
-    Q = tr.Qh + 1e-3 * np.abs(tr.Qh).max() * rng.standard_normal(tr.Qh.shape)
-    Qh, dQh, ddQh = derivatives(Q, tr.times)
-    U = np.column_stack([u(t) for t in tr.times])[:, 4:-4]
-    return Qh, dQh, ddQh, U
-
-
-#: kinds of :func:`active_data`: data whose certified fit has BOTH Kh and Ch on their
-#: constraint (eigenvalues at eps), each of a different spectrum
-ACTIVE_KINDS = ("rigid", "mixed", "short")
-#: held-out-style kinds of :func:`chain_data` (in the --table run, not in the default one)
-HELD_OUT_KINDS = ("chain",)
-
-
-def _orthogonal(rng, r):
-    Q, R = np.linalg.qr(rng.standard_normal((r, r)))
-    return Q * np.sign(np.diag(R))
-
-
-def active_data(kind: str, r: int, n: int, seed: int = 0):
-    """Forced data (Qh, dQh, ddQh, U) whose certified fit has both Kh and Ch active.
-
-    A modal system K = V diag(w^2) V^T, C = V diag(2 zeta w) V^T (V a random rotation, so
-    neither is diagonal in the coordinates), one input of three sines, simulated exactly;
-    then "sensor" noise (positions, velocities and accelerations each with independent
-    Gaussian noise relative to their largest entry - unbiased in K, unlike differencing a
-    noisy Qh, whose second difference correlates negatively with Qh and biases K upwards).
-    Undamped modes (zeta = 0) make Ch's fit indefinite, modes of (near-)zero or slightly
-    negative stiffness Kh's:
-
-    * ``rigid``: 1 + r // 4 rigid-body modes (w = 0), stiffness condition 1e3 on the rest,
-      a third of the modes (at least two) undamped, noise 1e-3;
-    * ``mixed``: a softening mode (w^2 = -1e-3) and a rigid one, stiffness condition 1e4
-      on the rest, every other mode overdamped (zeta 2-5), the others undamped, dt = 1e-3;
-    * ``short``: a short record (n dt = 0.6-2 s at dt = 2e-4: less than a period of the slow
-      modes), modes w^2 = 0, 1e-6, 1e-4 and 0.5-2e3, half undamped, noise 3e-3, faster input.
-    """
-    rng = np.random.default_rng(seed + 1000 * r)
-    V = _orthogonal(rng, r)
-    dt, noise, fscale = 2e-3, 1e-3, 1.0
-    if kind == "rigid":
-        nr = 1 + r // 4
-        w2 = np.concatenate([np.zeros(nr), np.geomspace(1.0, 1e3, r - nr)])
-        zeta = np.where(rng.permutation(r) < max(2, r // 3), 0.0, 0.02)
-    elif kind == "mixed":
-        w2 = np.concatenate([[-1e-3, 0.0], np.geomspace(1.0, 1e4, r - 2)])
-        zeta = np.where(np.arange(r) % 2 == 0, rng.uniform(2, 5, r), 0.0)
-        dt = 1e-3
-    elif kind == "short":
-        w2 = np.concatenate([[0.0, 1e-6, 1e-4], np.geomspace(0.5, 2e3, r - 3)])
-        zeta = np.where(rng.permutation(r) < r // 2, 0.0, 0.05)
-        noise, dt, fscale = 3e-3, 2e-4, 10.0
-    else:
-        raise ValueError(f"kind must be one of {ACTIVE_KINDS}, not {kind!r}")
-    w = np.sqrt(np.abs(w2))
-    K = V @ np.diag(w2) @ V.T
-    C = V @ np.diag(2 * zeta * w) @ V.T
-    B = rng.standard_normal((r, 1))
-    freqs = rng.uniform(0.5, 3.0, size=3) * fscale
-
-    def u(t):
-        return np.array([np.sin(freqs * t).sum()])
-
-    tr = LagrangianROM(K=0.5 * (K + K.T), C=0.5 * (C + C.T), B=B, lagrangian=False).simulate(
-        rng.standard_normal(r), rng.standard_normal(r), dt, n + 7, inputs=u)
-    exact = derivatives(tr.Qh, tr.times)
-    Qh, dQh, ddQh = (A + noise * np.abs(A).max() * rng.standard_normal(A.shape) for A in exact)
-    U = np.column_stack([u(t) for t in tr.times])[:, 4:-4]
-    return Qh, dQh, ddQh, U
-
-
-def chain_data(r: int, n: int, seed: int = 0):
-    """A forced, damped spring chain of r masses, both ends free (a rigid mode), half the
-    dampers missing, two inputs (at the first and the middle mass), n samples, sensor noise
-    1e-3: the held-out style (both Kh and Ch active at the optimum)."""
-    rng = np.random.default_rng(seed + 7 * r)
-    k = rng.uniform(0.5, 2.0, r)
-    c = np.where(rng.uniform(size=r) < 0.5, 0.0, rng.uniform(0.01, 0.1, r))
-    K, C = np.zeros((r, r)), np.zeros((r, r))
-    for i in range(r - 1):
-        for A, v in ((K, k[i]), (C, c[i])):
-            A[i, i] += v
-            A[i + 1, i + 1] += v
-            A[i, i + 1] -= v
-            A[i + 1, i] -= v
-    B = np.zeros((r, 2))
-    B[0, 0], B[r // 2, 1] = 1.0, 1.0
-    f1, f2 = rng.uniform(0.3, 2.0, 2)
-
-    def u(t):
-        return np.array([np.sin(f1 * t) + 0.3 * np.sin(3.1 * f1 * t), np.cos(f2 * t)])
-
-    tr = LagrangianROM(K=K, C=C, B=B, lagrangian=False).simulate(
-        rng.standard_normal(r), rng.standard_normal(r), 0.01, n + 7, inputs=u)
-    exact = derivatives(tr.Qh, tr.times)
-    Qh, dQh, ddQh = (A + 1e-3 * np.abs(A).max() * rng.standard_normal(A.shape) for A in exact)
-    U = np.column_stack([u(t) for t in tr.times])[:, 4:-4]
-    return Qh, dQh, ddQh, U
-
-
-def mechanical_data(kind: str, r: int, n: int, seed: int = 0):
-    """(Qh, dQh, ddQh, U) of a forced data set: :func:`forced_data` for ``"forced"``,
-    :func:`chain_data` for ``"chain"``, else :func:`active_data` of that kind."""
-    if kind == "chain":
-        return chain_data(r, n, seed)
-    return forced_data(r, n, seed) if kind == "forced" else active_data(kind, r, n, seed)
-
-
-def wave_data(r, n, seed=0):
-    rng = np.random.default_rng(seed)
-    A = rng.standard_normal((r, r))
-    K = -(A @ A.T) / r
-    t = np.linspace(0, 20, n)
-    Qh = np.vstack([np.sin((i + 1) * 0.7 * t + rng.uniform(0, 6)) for i in range(r)])
-    Fh = np.sin(Qh)
-    ddQh = K @ Qh - Fh + 1e-6 * rng.standard_normal(Qh.shape)
-    return Qh, ddQh, Fh
 
 
 def _fit_for(kind: str, r: int, K: int, beam, eps: float):
@@ -412,7 +280,7 @@ def _mass_and_poly(args) -> dict:
         print(f"\nlearned-mass iteration compiled (numba), compile/cache load {jit_s:.2f} s" if jit_s is not None
               else "\nlearned-mass iteration: numpy")
         bm.print_mass_header()
-        kinds = args.mass_sets.split(",") if args.mass_sets else list(bm.MASS_KINDS)
+        kinds = args.mass_sets.split(",") if args.mass_sets else list(MASS_KINDS)
         out["mass_rows"] = []
         for kind in kinds:
             for r in (int(v) for v in args.mass_r.split(",")):

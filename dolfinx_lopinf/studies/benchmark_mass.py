@@ -3,7 +3,8 @@
 against Clarabel on the same problem, on held-out-style data.
 
 Learned-mass data kinds (:func:`mass_data`), each a forced, damped system whose mass is not I
-in the coordinates the fit sees, with sensor noise:
+in the coordinates the fit sees (the first three with sensor noise;
+:func:`dolfinx_lopinf.core.synthetic.mass_data`):
 
 * ``modal``: a random SPD mass (two decades), stiffness and Rayleigh damping in random
   coordinates - the learned mass test's system, r coordinates;
@@ -13,6 +14,12 @@ in the coordinates the fit sees, with sensor noise:
   black-box user's basis gives;
 * ``active``: a modal system with rigid and undamped modes in random non-orthogonal
   coordinates: the K and C floors active at the optimum;
+* ``nearexact``: near-exact data, as a recorded dolfinx loop gives them - a 150-node bar
+  (consistent mass, Rayleigh damping) under a smooth body load, integrated with the
+  average-acceleration Newmark scheme, Euclidean POD to r without noise: the POD spectrum
+  falls to 1e-6 .. 1e-8 by r = 8 .. 16 and the fit's residual is the truncation alone
+  (:func:`dolfinx_lopinf.core.synthetic.near_exact` also predicts an unseen load against the free fit and the intrusive
+  ROM);
 * ``file:PATH``: recorded snapshots (``lo.Snapshots.save``, e.g. ``demos/own_loop.py``'s
   train_newmark.npz), Euclidean POD to r, the Newmark relation.
 
@@ -21,7 +28,8 @@ through cvxpy with its default tolerances; ``phi`` compares the objectives, ``ga
 solver's own certificate (ours: the dual bound; Clarabel: its primal-dual gap).
 
 Polynomial data (:func:`poly_data`): the sum-of-squares potential of the polynomial tests
-(coordinates 1 .. 1e-4 in scale), sampled as probe data with 1e-4 noise.
+(:func:`dolfinx_lopinf.core.synthetic.stiff_potential`: coordinates 1 .. 1e-4 in scale), sampled
+as probe data with 1e-4 noise.
 """
 
 from __future__ import annotations
@@ -31,82 +39,26 @@ import warnings
 
 import numpy as np
 
-MASS_KINDS = ("modal", "chainpod", "active")
+from ..core import synthetic
+from ..core.polynomial import n_unknowns
+from ..core.synthetic import potential_samples, stiff_potential
 
 
-def _spd(rng, r, spread):
-    Q = np.linalg.qr(rng.standard_normal((r, r)))[0]
-    return Q @ np.diag(np.geomspace(1.0, spread, r)) @ Q.T
-
-
-def _newmark(M, K, C, B, u, n, dt, rng):
-    from ..core.rom import LagrangianROM
-
-    rom = LagrangianROM(K=K, M=M, C=C, B=B, scheme="newmark", lagrangian=False)
-    return rom.simulate(rng.standard_normal(len(K)) * 0.1, np.zeros(len(K)), dt, n, inputs=u)
-
-
-def _relation(Q, dt, u, noise, rng):
-    from ..core.ddt import newmark_data
-
-    t = dt * np.arange(Q.shape[1])
-    U = np.array([u(s) for s in t]).T
-    Q = Q + noise * np.abs(Q).max() * rng.standard_normal(Q.shape)
-    return newmark_data(Q, t, U)
+MASS_KINDS = synthetic.MASS_KINDS
 
 
 def mass_data(kind: str, r: int, n: int = 1500, seed: int = 0):
-    """(Qbar, D1, D2, Ubar) of a learned-mass data set (module docstring)."""
-    rng = np.random.default_rng(seed + 100 * r)
-    dt = 0.01
-    f = rng.uniform(0.5, 3.0, 3)
-
-    def u(t):
-        return np.array([np.sin(f[0] * t) + 0.5 * np.sin(f[1] * t), np.cos(f[2] * t)])
-
-    if kind == "modal":
-        M, K = _spd(rng, r, 1e-2), _spd(rng, r, 100.0)
-        C, B = 0.02 * M + 1e-3 * K, rng.standard_normal((r, 2))
-        tr = _newmark(M, K, C, B, u, n, dt, rng)
-        return _relation(tr.Qh, dt, u, 1e-4, rng)
-    if kind == "active":
-        T = rng.standard_normal((r, r)) + 2.0 * np.eye(r)  # non-orthogonal coordinates
-        w2 = np.concatenate([np.zeros(1 + r // 4), np.geomspace(1.0, 400.0, r - 1 - r // 4)])
-        zeta = np.where(rng.permutation(r) < max(2, r // 3), 0.0, 0.02)
-        Mm = np.geomspace(1.0, 0.05, r)
-        K, C = np.diag(Mm * w2), np.diag(2 * zeta * np.sqrt(w2) * Mm)
-        Ti = np.linalg.inv(T)
-        M, K, C = Ti.T @ np.diag(Mm) @ Ti, Ti.T @ K @ Ti, Ti.T @ C @ Ti
-        B = rng.standard_normal((r, 2))
-        tr = _newmark(0.5 * (M + M.T), 0.5 * (K + K.T), 0.5 * (C + C.T), B, u, n, dt, rng)
-        return _relation(tr.Qh, dt, u, 1e-4, rng)
-    if kind == "chainpod":
-        N = 60
-        k = rng.uniform(50.0, 200.0, N - 1)
-        m = rng.uniform(0.5, 2.0, N)
-        c = np.where(rng.uniform(size=N - 1) < 0.5, 0.0, rng.uniform(0.01, 0.05, N - 1))
-        K, C = np.zeros((N, N)), np.zeros((N, N))
-        for i in range(N - 1):
-            for A, v in ((K, k[i]), (C, c[i])):
-                A[i, i] += v
-                A[i + 1, i + 1] += v
-                A[i, i + 1] -= v
-                A[i + 1, i] -= v
-        B = np.zeros((N, 2))
-        B[0, 0], B[N // 2, 1] = 1.0, 1.0
-        tr = _newmark(np.diag(m), K, C, B, u, n, dt, rng)
-        from ..core.basis import pod
-
-        basis = pod(tr.Qh, r)
-        return _relation(basis.project(tr.Qh), dt, u, 1e-6, rng)
-    if kind.startswith("file:"):
+    """(Qbar, D1, D2, Ubar) of a learned-mass data set: a kind of
+    :func:`dolfinx_lopinf.core.synthetic.mass_data`, or ``file:PATH`` (recorded snapshots:
+    Euclidean POD to r, the Newmark relation)."""
+    if isinstance(kind, str) and kind.startswith("file:"):
         from ..core.basis import pod
         from ..core.ddt import newmark_data
         from ..core.snapshots import Snapshots
 
         S = Snapshots.load(kind[5:])
         return newmark_data(pod(S.Q, r).project(S.Q), S.times, S.U)
-    raise ValueError(f"kind must be one of {MASS_KINDS} or file:PATH, not {kind!r}")
+    return synthetic.mass_data(kind, r, n, seed)
 
 
 def _phi(problem, theta, tau):
@@ -152,27 +104,9 @@ def mass_row(kind: str, r: int, repeats: int = 3, clarabel: bool = True) -> dict
 
 def poly_data(r: int, seed: int = 2):
     """Probe-style data of the polynomial tests' sum-of-squares potential (1e-4 noise)."""
-    from ..core import polynomial as pl
-
-    rng = np.random.default_rng(seed)
-    n = r + r * (r + 1) // 2
-    H = rng.standard_normal((n, n))
-    G = H @ H.T / n + 0.1 * np.eye(n)
-    M2, M3, M4 = pl.gram_maps(r)
-    theta0 = np.concatenate([M2 @ G.ravel(), M3 @ G.ravel(), M4 @ G.ravel()])
-    scales = np.logspace(0, -4, r)
-    div = np.concatenate([pl._monomial_scale(np.sqrt(scales), pl.monomials(r, d)) for d in (2, 3, 4)])
-    pot = pl.PolynomialPotential.from_coefficients(theta0 / div, r)
-    N = int(3 * pl.n_unknowns(r, 1)["total"] / r) + 10
-    rng = np.random.default_rng(4)
-    Q = scales[:, None] * rng.standard_normal((r, N))
-    V = scales[:, None] * rng.standard_normal((r, N))
-    U = rng.uniform(-1, 1, (1, N))
-    C = np.diag(0.1 / scales) @ (np.eye(r) + 0.1) @ np.diag(0.1 / scales) * 1e-3
-    C = 0.5 * (C + C.T) + 1e-3 * np.eye(r)
-    B = rng.standard_normal((r, 1))
-    A = -(pot.gradient(Q) + C @ V) + B @ U
-    return pl.point_data(Q, V, A * (1 + 1e-4 * rng.standard_normal(A.shape)), U)
+    pot, scales = stiff_potential(r, seed)
+    N = int(3 * n_unknowns(r, 1)["total"] / r) + 10
+    return potential_samples(pot, scales, N, np.random.default_rng(4), noise=1e-4)[0]
 
 
 def poly_row(r: int, data=None, label: str = "stiff") -> dict:

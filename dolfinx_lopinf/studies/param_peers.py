@@ -36,7 +36,8 @@ import numpy as np
 from ..core.basis import Basis
 from ..core.parametric import AffineStructure, projector
 from ..errors import InputError
-from .peers import DEFAULT_CANDIDATES, _exact_model_class, _opinf, _serial_blas
+from ..core._blas import one_blas_thread
+from .peers import DEFAULT_CANDIDATES, _exact_model_class, _opinf
 
 KINDS = ("affine", "interpolated")
 
@@ -87,7 +88,7 @@ class ParametricPeer:
         if len(frozen.operators) > 1:
             ops.append(opinf.operators.InputOperator(frozen.operators[1].entries))
         exact = _exact_model_class(opinf)(ops)
-        with warnings.catch_warnings(), _serial_blas():
+        with warnings.catch_warnings(), one_blas_thread():
             warnings.simplefilter("ignore")
             X = np.asarray(exact.predict(x0, np.asarray(times, float), inputs))
         finite = X.shape[1] == len(times) and bool(np.all(np.isfinite(X)))
@@ -151,7 +152,7 @@ def opinf_parametric(data, basis: Basis, *, kind: str = "affine",
         inputs = [np.hstack([trajs[i][4] for i in ii]) for ii in idx] if forced else None
     peer = ParametricPeer(model, kind, r, (sq, sv), float("nan"), 0.0, P)
     t0 = time.perf_counter()
-    with warnings.catch_warnings(), _serial_blas():
+    with warnings.catch_warnings(), one_blas_thread():
         warnings.simplefilter("ignore")
         model.fit(params, states, lhs, inputs)
         shifts = [x.mean(axis=1, keepdims=True) for x in X]

@@ -30,7 +30,7 @@ fitted the way its tutorials fit it, so the demos can show it beside L-OpInf.
 Time integration (``integrator=``). The tutorials integrate with ``solve_ivp(method="BDF")``
 at its default tolerances (rtol 1e-3), which adds an error of its own: for the beam demo's
 mass-orthonormal r = 20 peer, test error 1.9e-3 instead of 8.5e-7 and FOM energy error 3.6e-3
-instead of 1e-8 to 2 s, at 10 s per run (measured). The default here, ``"exact"``, integrates
+instead of 1e-8 to 2 s, and a slow run. The default here, ``"exact"``, integrates
 the *inferred* linear ODE exactly: x_{k+1} = expm(A dt) x_k, with inputs linear between the
 sample times (first-order hold, an augmented matrix exponential). So a peer's error is that of its
 model, not of an integrator tolerance - and the regulariser search (which integrates once
@@ -44,9 +44,7 @@ raise ``ImportError`` with the install command.
 
 from __future__ import annotations
 
-import contextlib
 import copy
-import functools
 import sys
 import time
 import warnings
@@ -54,6 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core._blas import one_blas_thread
 from ..core._checks import as_real_array, check_finite, check_uniform_times
 from ..errors import InputError
 
@@ -63,23 +62,6 @@ DEFAULT_CANDIDATES = tuple(np.logspace(-12, 2, 15))
 BASIS_KINDS = ("stacked", "blocks")
 INTEGRATORS = ("exact", "BDF")
 SVD_SOLVERS = ("dense", "randomized")
-
-
-@functools.lru_cache(maxsize=1)
-def _blas_controller():
-    from threadpoolctl import ThreadpoolController
-
-    return ThreadpoolController()
-
-
-def _serial_blas():
-    """One BLAS thread for the peer's small kernels (2r <= a few dozen), as our own fits run
-    (``inference._serial_blas``): OpenBLAS threads cost more than they give there - on the
-    2-core machine under load a 40 x 40 ``expm`` took 15 ms with 2 threads, 0.2 ms with 1."""
-    try:
-        return _blas_controller().limit(limits=1, user_api="blas")
-    except Exception:  # no threadpoolctl view of the BLAS: run as is
-        return contextlib.nullcontext()
 
 
 def have_opinf() -> bool:
@@ -270,7 +252,7 @@ class OpInfPeer:
         x0 = self.encode(q0, v0)
         u = self._input_arg(inputs, times)
         t0 = time.perf_counter()
-        with warnings.catch_warnings(), _serial_blas():
+        with warnings.catch_warnings(), one_blas_thread():
             warnings.simplefilter("ignore")
             if self.integrator == "exact":
                 Xh = self.rom.model.predict(x0, times, u)
@@ -377,7 +359,7 @@ def opinf_first_order(Q, times, r, *, velocities=None, inputs=None, basis="stack
             model=_model_class(opinf, integrator)(operators, solver=opinf.lstsq.L2Solver()))
         options = {"method": "BDF"} if integrator == "BDF" else {}
         t0 = time.perf_counter()
-        with warnings.catch_warnings(), _serial_blas():
+        with warnings.catch_warnings(), one_blas_thread():
             warnings.simplefilter("ignore")  # opinf warns per unstable candidate / edge winner
             rom.fit_regselect_continuous(
                 candidates=list(candidates), train_time_domains=times, states=X,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from ..fem.fom import StateMap
+from ..fem.state import StateMap
 from ..fem.integrators import MidpointIntegrator
 
 

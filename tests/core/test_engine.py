@@ -30,6 +30,12 @@ def _forced_damped_data(r=5, m=2, n=6000, dt=2e-3, noise=0.0, seed=0):
     return (Qh, dQh, ddQh, U[:, 4:-4]), (K, C, B)
 
 
+def _solve(strategy, L, Z, n_blocks, eps):
+    """(Theta, certificate dict) of ``strategy`` on ``lsq.Problem(L, Z, n_blocks, eps)``."""
+    theta, cert = strategy.solve(lsq.Problem(L, Z, n_blocks, eps))
+    return theta, cert.as_dict()
+
+
 def _quiet(fn, *args, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -69,7 +75,7 @@ def test_active_constraints_match_clarabel():
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-data[3].shape[0]:] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_ipm(L_S, Z_S, 2, 1e-8)
+    theta, info = _solve(lsq.Barrier(), L_S, Z_S, 2, 1e-8)
     assert info["converged"] and info["duality_gap"] < 1e-8
     r = data[0].shape[0]
     assert np.allclose(theta[:, :r], ours.K, rtol=1e-4, atol=1e-6 * np.abs(ours.K).max())
@@ -82,7 +88,7 @@ def test_conservative_admm_certificate_and_lyapunov_path():
     # a target whose symmetric minimiser is indefinite: K* = -diag(...) mixes signs
     K_star = np.diag([5.0, 2.0, 1.0, -0.5, -2.0, 0.3])
     Z = -K_star @ L
-    K, info = lsq.solve_psd_single(L, Z, 1e-8)
+    K, info = _solve(lsq.EigenbasisADMM(), L, Z, 1, 1e-8)
     assert info["converged"]
     kkt = lsq.kkt(L, Z, K, [slice(0, r)], 1e-8)
     assert kkt["multiplier_min_eig"] > -1e-7 and kkt["complementarity"] < 1e-6
@@ -192,7 +198,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     ("admm") each return a feasible point whose certified duality gap is <= 1e-8, and that
     certified lower bound does not exceed Clarabel's value. (20, 1) is the case where ADMM
     needed 144 iterations to find the face."""
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
     from dolfinx_lopinf.core.inference import _solve_cvxpy, gram_data
 
     Qh, dQh, ddQh, U = forced_data(r, 3000, seed=seed)
@@ -200,7 +206,7 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method=method)
+    theta, info = _solve(lsq.PSDBlocks(method=method), L_S, Z_S, 2, 1e-8)
     assert info["converged"] and info["method"] == {"auto": "ipm", "admm": "admm+face"}[method]
     assert info["duality_gap"] <= 1e-8
     assert min(info["face_ranks"]) < r  # an active constraint: a proper face
@@ -214,9 +220,9 @@ def test_psd_block_solvers_are_certified_against_clarabel(r, seed, method):
     # Clarabel's objective on the reduced problem (B minimised out exactly as in ours), at
     # its point made feasible (Clarabel meets K, C >= eps I only to its own tolerance, and
     # an infeasible point may undercut the bound by ~1e-8: a verdict rounding could flip)
-    from dolfinx_lopinf.core.inference import _floor
+    from dolfinx_lopinf.core.gram import psd_floor
 
-    theta_ref = np.hstack([_floor(ref.K, 1e-8), _floor(ref.C, 1e-8)])
+    theta_ref = np.hstack([psd_floor(ref.K, 1e-8), psd_floor(ref.C, 1e-8)])
     f_ref_S = float(np.sum((theta_ref @ L_S + Z_S) ** 2))
     # Clarabel's point is feasible, so it cannot beat the certified lower bound
     assert lower <= f_ref_S * (1 + 1e-9), (lower, f_ref_S)
@@ -243,7 +249,7 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
     caller's thread count back, also when they raise."""
     from threadpoolctl import ThreadpoolController
 
-    from dolfinx_lopinf.core.inference import _blas_controller
+    from dolfinx_lopinf.core._blas import blas_controller
 
     ctl = ThreadpoolController()
     data, _ = _forced_damped_data(r=3, m=1, n=800)
@@ -253,7 +259,7 @@ def test_inference_runs_with_one_blas_thread_and_restores_the_callers_setting():
         original = lo.core.inference.gram_data
 
         def spy(*a, **k):
-            seen.append([p["num_threads"] for p in _blas_controller().info() if p["user_api"] == "blas"])
+            seen.append([p["num_threads"] for p in blas_controller().info() if p["user_api"] == "blas"])
             return original(*a, **k)
 
         lo.core.inference.gram_data = spy
@@ -272,7 +278,7 @@ def test_interior_point_crossover_and_fallback_are_certified():
     """Stopped early, the interior point method hands its face to Newton on the fixed-rank
     face (crossover, certified in a few steps); stopped too early for the face to be right,
     ADMM + face Newton takes over - every path ends certified."""
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
     from dolfinx_lopinf.core.inference import gram_data
 
     Qh, dQh, ddQh, U = forced_data(12, 3000, seed=2)
@@ -280,16 +286,16 @@ def test_interior_point_crossover_and_fallback_are_certified():
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    full, info_full = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
+    full, info_full = _solve(lsq.PSDBlocks(), L_S, Z_S, 2, 1e-8)
     assert info_full["method"] == "ipm" and not info_full["ipm"].get("crossover")
     f_full = np.sum((full @ L_S + Z_S) ** 2)
     for ipm_iters, method in [(5, "ipm"), (2, "admm+face")]:
-        theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, ipm_max_iter=ipm_iters)
+        theta, info = _solve(lsq.PSDBlocks(ipm_max_iter=ipm_iters), L_S, Z_S, 2, 1e-8)
         assert info["converged"] and info["method"] == method and info["duality_gap"] <= 1e-8
         assert info["ipm"].get("crossover", False) == (method == "ipm")
         assert np.sum((theta @ L_S + Z_S) ** 2) == pytest.approx(f_full, rel=2e-8)
     with pytest.raises(ValueError, match="method"):
-        lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, method="clarabel")
+        _solve(lsq.PSDBlocks(method="clarabel"), L_S, Z_S, 2, 1e-8)
 
 
 @pytest.mark.parametrize("seed,eliminated", [(2, True), (0, False)])
@@ -298,7 +304,7 @@ def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
     minimised out exactly. Seed 2: K stays > eps I at the optimum, the reduced run is kept
     and equals the full interior point's answer; seed 0: K is active at the optimum, the
     reduced run is abandoned and the full one answers. Both certified <= 1e-8."""
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
     from dolfinx_lopinf.core.inference import gram_data
 
     r = 12
@@ -306,8 +312,8 @@ def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
     free = np.zeros(g.L.shape[0], dtype=bool)
     free[-1] = True
     L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
-    theta, info = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8)
-    theta_full, info_full = lsq.solve_psd_blocks(L_S, Z_S, 2, 1e-8, eliminate=False)
+    theta, info = _solve(lsq.PSDBlocks(), L_S, Z_S, 2, 1e-8)
+    theta_full, info_full = _solve(lsq.PSDBlocks(eliminate=False), L_S, Z_S, 2, 1e-8)
     assert info["eliminated_blocks_tried"] == [0] and "eliminated_blocks_tried" not in info_full
     assert (info["ipm"].get("eliminated_blocks") == [0]) == eliminated
     assert info["face_ranks"][0] == r if eliminated else info["face_ranks"][0] < r

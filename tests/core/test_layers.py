@@ -6,7 +6,9 @@ runs the black-box path end to end: Snapshots -> lo.fit (scheme and mass "auto":
 without cvxpy) -> predict -> save/load. A DOLFINx-only name must fail with the install hint.
 """
 
+import ast
 import json
+import pathlib
 import subprocess
 import sys
 
@@ -61,3 +63,73 @@ def test_numpy_core_runs_without_dolfinx_or_any_extra():
     assert out["error"] < 1e-6, out                      # exact data, exact relation
     assert out["same"], out
     assert "DOLFINx" in out["dolfinx_error"], out        # the FOM layer names what to install
+
+
+# -- the import graph: layers, no circles, core tests on the core alone -----------------------
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+PACKAGE = ROOT / "dolfinx_lopinf"
+
+
+def _module_name(path: pathlib.Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _imports(path: pathlib.Path, modules: set) -> set:
+    """The package's modules ``path`` imports anywhere (function-local imports included)."""
+    name = _module_name(path)
+    base = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            stem = base[:len(base) - node.level + 1] if node.level else []
+            mod = ".".join(stem + ([node.module] if node.module else []))
+            targets = [f"{mod}.{a.name}" for a in node.names] + [mod]
+        else:
+            continue
+        for t in targets:
+            while t and t not in modules:
+                t = t.rpartition(".")[0]
+            if t and t != name and not name.startswith(t + "."):  # a module's own package: its face
+                out.add(t)
+    return out
+
+
+def _graph():
+    files = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
+    return {m: _imports(p, set(files)) for m, p in files.items()}
+
+
+def test_no_two_modules_import_each_other():
+    """No circle of two modules, function-local imports included (a package's __init__ that
+    hands its submodules' names on is its face, not a party)."""
+    graph = _graph()
+    pairs = sorted({tuple(sorted((a, b))) for a, deps in graph.items() for b in deps
+                    if a in graph.get(b, ()) and not (a.startswith(b + ".") or b.startswith(a + "."))})
+    assert pairs == [], pairs
+
+
+def test_core_imports_neither_the_dolfinx_layer_nor_anything_above_it():
+    graph = _graph()
+    above = ("dolfinx_lopinf.fem", "dolfinx_lopinf.scenes", "dolfinx_lopinf.studies",
+             "dolfinx_lopinf.viz")
+    bad = {m: sorted(d for d in deps if d.startswith(above)) for m, deps in graph.items()
+           if m.startswith("dolfinx_lopinf.core")}
+    assert not {m: d for m, d in bad.items() if d}, bad
+
+
+def test_core_tests_use_the_core_alone():
+    """The numpy core's tests do not import the studies, scenes or the DOLFINx layer (their
+    data generators live in dolfinx_lopinf.core.synthetic)."""
+    bad = {}
+    for path in sorted((ROOT / "tests" / "core").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            for n in names:
+                if n.startswith(("dolfinx_lopinf.studies", "dolfinx_lopinf.scenes", "dolfinx_lopinf.fem")):
+                    bad.setdefault(path.name, []).append(n)
+    assert bad == {}, bad

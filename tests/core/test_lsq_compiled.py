@@ -8,7 +8,7 @@ import pytest
 from dolfinx_lopinf.core import compiled, inference, lsq
 from dolfinx_lopinf.core.lsq import _compiled, ipm
 from dolfinx_lopinf.errors import InputError
-from dolfinx_lopinf.studies import benchmark
+from dolfinx_lopinf.core import synthetic
 
 needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed or JIT disabled")
 EPS = 1e-8
@@ -34,7 +34,7 @@ SETS = [("forced", 4, 600), ("forced", 6, 600), ("rigid", 6, 800), ("mixed", 6, 
 @needs_numba
 @pytest.mark.parametrize("kind, r, n", SETS)
 def test_compiled_interior_point_reaches_the_numpy_optimum(kind, r, n):
-    data = benchmark.mechanical_data(kind, r, n)
+    data = synthetic.mechanical_data(kind, r, n)
     problem = _gram_problem(data)
     th_np, c_np, f_np = _solve(problem, "numpy")
     th_nb, c_nb, f_nb = _solve(problem, "numba")
@@ -84,7 +84,7 @@ def test_compiled_interior_point_on_random_problems_and_one_active_block(seed):
 @needs_numba
 def test_compiled_interior_point_with_the_full_run_interface():
     """PrimalDualIPM.run directly: the trace, mu, face ranks and a watch that stops it."""
-    problem, _ = _gram_problem(benchmark.active_data("rigid", 4, 600)).without_free()
+    problem, _ = _gram_problem(synthetic.active_data("rigid", 4, 600)).without_free()
     H, h = problem.normal_equations
     x, _ = lsq.problem.symmetric_start(problem)
     out = {}
@@ -125,7 +125,7 @@ def test_compiled_step_length_eigenvalue_matches_lapack():
 def test_compiled_start_is_the_numpy_paths(kind, r):
     """The kernel _start: the scaled problem (2 Hs, 2 hs, c0) and the starting point
     (x, X, Lambda = c X^-1) of the numpy path's __init__ and _start, to rounding."""
-    problem, _ = _gram_problem(benchmark.active_data(kind, r, 800)).without_free()
+    problem, _ = _gram_problem(synthetic.active_data(kind, r, 800)).without_free()
     H, h = problem.normal_equations
     x_start, feasible = lsq.problem.symmetric_start(problem)
     assert not feasible.all()  # a start with eigenvalues to flip
@@ -154,7 +154,7 @@ def test_compiled_kernel_constants_are_the_numpy_paths():
 def test_jit_disabled_falls_back_to_the_numpy_iteration(monkeypatch):
     monkeypatch.setenv(compiled.JIT_ENV, "0")
     assert not _compiled.available() and _compiled.warm_up() is None
-    problem = _gram_problem(benchmark.active_data("mixed", 4, 600))
+    problem = _gram_problem(synthetic.active_data("mixed", 4, 600))
     theta, cert = lsq.Auto().solve(problem)
     assert cert.converged and cert.details["ipm"]["backend"] == "numpy"
     H, h = problem.without_free()[0].normal_equations
@@ -178,7 +178,7 @@ def test_leased_scratch_arrays_are_reused_and_bounded():
 def test_compiled_interior_point_stopped_short_takes_the_same_crossover():
     """max_iter reached: both iterations stop at the same count, uncertified, and the
     crossover to Newton on the face (or its absence) is the same."""
-    problem = _gram_problem(benchmark.forced_data(6, 600))
+    problem = _gram_problem(synthetic.forced_data(6, 600))
     for max_iter in (3, 6):
         out = {}
         for backend in ("numpy", "numba"):
@@ -202,7 +202,7 @@ def test_mixed_precision_certifies_the_float64_optimum(kind, n, monkeypatch):
     iterations). The step lengths of the two backends are not compared: where a float32
     rounding flips, the directions differ by the solve's inexactness (seen: up to 0.6
     relative in one step)."""
-    problem = _gram_problem(benchmark.mechanical_data(kind, 20, n))
+    problem = _gram_problem(synthetic.mechanical_data(kind, 20, n))
     backends = ("numpy", "numba") if compiled.available() else ("numpy",)
     runs = {b: _solve(problem, b) for b in backends}
     _float64_only(monkeypatch)
@@ -234,7 +234,7 @@ def test_mixed_precision_refused_is_the_float64_iteration(backend, monkeypatch):
     """A float32 factor refused - its solves miss the residual check (forced here by a bound
     of 0) or, numpy path, spotrf fails (forced) - redoes the iteration in float64 and stays
     there: the same iterates, bit for bit, as the float64 run."""
-    problem = _gram_problem(benchmark.mechanical_data("rigid", 20, 800))
+    problem = _gram_problem(synthetic.mechanical_data("rigid", 20, 800))
     assert _ipm_traces(problem, backend)[1] >= 3
     with monkeypatch.context() as m:
         m.setattr(ipm, "MIXED_MAX_RESIDUAL", 0.0)
@@ -267,6 +267,6 @@ def test_compiled_factor_falls_back_when_float32_is_singular():
 
 def test_mixed_precision_only_from_mixed_from_n():
     """r = 12 with two blocks (n = 156 < MIXED_FROM_N): float64 throughout."""
-    problem = _gram_problem(benchmark.mechanical_data("rigid", 12, 800))
+    problem = _gram_problem(synthetic.mechanical_data("rigid", 12, 800))
     _, cert, _ = _solve(problem, "numpy")
     assert cert.converged and cert.details["ipm"]["float32_iterations"] == 0

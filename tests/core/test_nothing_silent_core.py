@@ -89,6 +89,10 @@ def test_clear_messages_for_the_usual_slips():
 
     with pytest.raises(InputError, match=r"lo\.fit\(rec\.snapshots\(\), r\)"):
         lo.fit(Recorder(), 3)
+    short = lo.Snapshots(a.times[:12], a.Q[:, :12])
+    with pytest.raises(InputError, match=r"record longer, or pass mass= and damping= \(") as info:
+        lo.fit(short, 2, scheme="newmark")  # the scheme was named: not asked for again
+    assert "scheme=" not in str(info.value)
     with pytest.raises(InputError) as info:
         lo.pod(np.ones((400, 300)), 250)
     assert len(str(info.value)) < 300  # not hundreds of singular values

@@ -7,44 +7,17 @@ import numpy as np
 import pytest
 
 from dolfinx_lopinf.core import polynomial as pl
+from dolfinx_lopinf.core.synthetic import potential_samples, stiff_potential
 from dolfinx_lopinf.errors import InputError
-
-
-def _stiff_system(r=4, seed=2):
-    """A gradient system U(q) = U0(S^-1/2 q), U0 = m^T G m, S = diag(scales), scales 1 .. 1e-4:
-    sampled at |q_l| ~ scale_l every row has accelerations of order 1 while the coordinates
-    differ by 1e4 - like the trailing (small, stiff) POD coordinates of elastic data."""
-    rng = np.random.default_rng(seed)
-    n = r + r * (r + 1) // 2
-    H = rng.standard_normal((n, n))
-    G = H @ H.T / n + 0.1 * np.eye(n)
-    M2, M3, M4 = pl.gram_maps(r)
-    theta0 = np.concatenate([M2 @ G.ravel(), M3 @ G.ravel(), M4 @ G.ravel()])
-    scales = np.logspace(0, -4, r)
-    div = np.concatenate([pl._monomial_scale(np.sqrt(scales), pl.monomials(r, d)) for d in (2, 3, 4)])
-    return pl.PolynomialPotential.from_coefficients(theta0 / div, r), scales
-
-
-def _samples(pot, scales, n, rng, noise=0.0):
-    r = pot.r
-    Q = scales[:, None] * rng.standard_normal((r, n))
-    V = scales[:, None] * rng.standard_normal((r, n))
-    U = rng.uniform(-1, 1, (1, n))
-    C = np.diag(0.1 / scales) @ (np.eye(r) + 0.1) @ np.diag(0.1 / scales) * 1e-3
-    C = 0.5 * (C + C.T) + 1e-3 * np.eye(r)
-    B = rng.standard_normal((r, 1))
-    A = -(pot.gradient(Q) + C @ V) + B @ U
-    A_noisy = A * (1 + noise * rng.standard_normal(A.shape))
-    return pl.point_data(Q, V, A_noisy, U), A, C, B
 
 
 def test_every_equation_is_fitted_when_coordinates_differ_in_scale():
     """Noise of 1e-6 per entry: each row's residual stays at the noise level of that row. (With
     rows weighted by the coordinate scale, as before, the smallest coordinate's equation was
     left with a residual ~1e3 x its noise on such data.)"""
-    pot, scales = _stiff_system()
+    pot, scales = stiff_potential()
     rng = np.random.default_rng(3)
-    data, A, C, B = _samples(pot, scales, 600, rng, noise=1e-6)
+    data, A, C, B = potential_samples(pot, scales, 600, rng, noise=1e-6)
     ops = pl.fit_polynomial(data, constraint="none")
     pred = -(ops.potential.gradient(data.plus) + ops.C @ data.D1) + ops.B @ data.Ubar
     row_err = np.linalg.norm(pred - A, axis=1) / np.linalg.norm(A, axis=1)
@@ -64,8 +37,8 @@ def test_point_data_checks_its_input():
 def test_sos_fit_reaches_the_unconstrained_optimum_on_exact_stiff_data():
     """Exact data of an SOS potential: the constrained fit must not stop far above the optimum
     (the diagonally scaled formulation stopped at 5e-3 relative residual on SVK data)."""
-    pot, scales = _stiff_system(r=3)
-    data, A, C, B = _samples(pot, scales, 300, np.random.default_rng(4))
+    pot, scales = stiff_potential(r=3)
+    data, A, C, B = potential_samples(pot, scales, 300, np.random.default_rng(4))
     ops = pl.fit_polynomial(data, constraint="sos")
     cert = ops.certificate
     assert cert["relative_residual"] < 1e-5, cert["relative_residual"]
@@ -78,8 +51,8 @@ def test_sos_fit_by_our_interior_point_matches_clarabel():
     """solver='ipm' (polynomial_sos + lsq.psd_qp): the same residual as Clarabel on noisy stiff
     data, a Gram matrix >= 0, and a certificate that is a valid bound - Clarabel's answer,
     evaluated in our objective, is not below it. (Its gap stalls near 1e-6: not the default.)"""
-    pot, scales = _stiff_system(r=3)
-    data, *_ = _samples(pot, scales, 300, np.random.default_rng(4), noise=1e-4)
+    pot, scales = stiff_potential(r=3)
+    data, *_ = potential_samples(pot, scales, 300, np.random.default_rng(4), noise=1e-4)
     with pytest.warns(Warning):  # not certified to 1e-8: says so
         ours = pl.fit_polynomial(data, constraint="sos", solver="ipm")
     ref = pl.fit_polynomial(data, constraint="sos", solver="cvxpy")

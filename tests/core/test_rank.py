@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import dolfinx_lopinf as lo
-from dolfinx_lopinf.core.inference import RANK_RTOL
+from dolfinx_lopinf.core.gram import RANK_RTOL
 
 
 def _near_dependent_data(delta, seed=0):

@@ -241,7 +241,7 @@ def test_face_newton_turns_a_rough_face_into_a_certified_optimum():
 # -- infer_mechanical takes a name or an object, and rejects what it does not know --------
 
 def _forced_data(r=4):
-    from dolfinx_lopinf.studies.benchmark import forced_data
+    from dolfinx_lopinf.core.synthetic import forced_data
 
     return forced_data(r, 3000, seed=3)
 
@@ -293,11 +293,11 @@ def test_conservative_admm_skips_the_lyapunov_shortcut():
 
 @pytest.mark.parametrize("kind", ["rigid", "mixed", "short"])
 def test_both_active_benchmark_data_is_certified_with_both_blocks_on_the_constraint(kind):
-    from dolfinx_lopinf.studies import benchmark
+    from dolfinx_lopinf.core import synthetic
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        ops = lo.core.infer_mechanical(*benchmark.active_data(kind, 6, 3000), eps=1e-8)
+        ops = lo.core.infer_mechanical(*synthetic.active_data(kind, 6, 3000), eps=1e-8)
     cert = ops.certificate
     assert cert["solver"] == "ipm" and cert["status"] == "optimal"
     assert cert["duality_gap"] <= 1e-8
@@ -333,17 +333,17 @@ def test_face_multipliers_give_a_sound_bound_at_any_feasible_point():
 
 
 # held-out data (seeds the benchmark does not use) on which the interior point stalled at
-# m mu / f ~ 1e-8: before the face multipliers the first two fell back to ADMM (46-49 ms)
-# and the last two ran through ADMM into the barrier, uncertified (195-394 ms)
+# m mu / f ~ 1e-8: before the face multipliers the first two fell back to ADMM and the last
+# two ran through ADMM into the barrier, uncertified
 STALLED = [("mixed", 12, 10000, 1), ("mixed", 4, 10000, 3), ("rigid", 12, 10000, 6),
            ("mixed", 4, 10000, 15)]
 
 
 @pytest.mark.parametrize("kind, r, n, seed", STALLED)
 def test_interior_point_certifies_held_out_data_where_it_stalls(kind, r, n, seed):
-    from dolfinx_lopinf.studies import benchmark
+    from dolfinx_lopinf.core import synthetic
 
-    data = benchmark.active_data(kind, r, n, seed)
+    data = synthetic.active_data(kind, r, n, seed)
     with warnings.catch_warnings():
         warnings.simplefilter("error", lo.errors.SolverWarning)
         ops = lo.core.infer_mechanical(*data, eps=EPS)
@@ -371,9 +371,9 @@ def test_a_stalled_interior_point_hands_over_to_the_crossover_early(backend):
     1e-3). Where a run stalls depends on rounding (11-29 iterations over data perturbed at
     1e-14), so the test checks the rule on the data and on perturbed copies: no stall before
     the last iteration, and a certified answer."""
-    from dolfinx_lopinf.studies import benchmark
+    from dolfinx_lopinf.core import synthetic
 
-    data = benchmark.active_data("rigid", 12, 10000, 16)
+    data = synthetic.active_data("rigid", 12, 10000, 16)
     rng = np.random.default_rng(0)
     stalled = 0
     for k in range(4):
@@ -390,10 +390,10 @@ def _exact_rigid_data(r, seed):
     """Exact derivatives of a damped system with two rigid-body modes (K has eigenvalue 0 <
     eps: the constraint acts), one input: f* is ~1e-9 of the data's scale."""
     from dolfinx_lopinf.core.ddt import derivatives
-    from dolfinx_lopinf.studies.benchmark import _orthogonal
+    from dolfinx_lopinf.core.synthetic import orthogonal
 
     rng = np.random.default_rng(seed)
-    V = _orthogonal(rng, r)
+    V = orthogonal(rng, r)
     w2 = np.concatenate([np.zeros(2), np.geomspace(1, 100, r - 2)])
     zeta = np.where(np.arange(r) < 2, 0.0, 0.02)
     K = V @ np.diag(w2) @ V.T
@@ -443,10 +443,10 @@ def test_crossover_takes_the_face_minimiser_where_newton_does_not():
     the optimum moved into the interior along its active directions (by 1e-7: a gap of 9e-8),
     Newton shut - the face minimiser alone must certify."""
     from dolfinx_lopinf.core.lsq import ipm
-    from dolfinx_lopinf.studies import benchmark
+    from dolfinx_lopinf.core import synthetic
 
     (Qs, dQs, ddQs, Us), _, _ = lo.core.inference._unit_scaled(
-        *benchmark.active_data("mixed", 4, 10000, 15))
+        *synthetic.active_data("mixed", 4, 10000, 15))
     g = lo.core.inference.gram_data(Qs, dQs, ddQs, Us)
     blocks, _ = lsq.Problem(g.L, g.Z, 2, EPS, g.m).without_free()
     theta, ref = lsq.PSDBlocks(method="admm").solve(blocks)
@@ -478,9 +478,9 @@ def test_rank_deficient_two_block_fits_are_certified_with_the_ridge_raised(seed,
     """r = 16, both blocks, data of numerical rank ~2/3 of the rows: the normal equations
     square the condition (H singular to double precision, or condition ~1e17), so the
     interior point's directions were noise in the weak directions. Before: ADMM then the
-    barrier, 1-2 s and uncertified (a 'gap' of up to 6e287). Now the ridge is raised until
+    barrier, long and uncertified (a 'gap' of up to 6e287). Now the ridge is raised until
     cond(H) <= COND_MAX (said by an IllConditionedDataWarning) and the interior point
-    certifies (13-41 ms)."""
+    certifies."""
     data = _rank_deficient(16, seed, exact)
     with warnings.catch_warnings(record=True) as seen:
         warnings.simplefilter("always")
@@ -566,7 +566,7 @@ def test_barrier_reports_the_certified_bound(max_newton):
 # -- one certificate vocabulary (issue 28) ------------------------------------------------
 
 def _forced(r=4, n=2000, seed=0):
-    from dolfinx_lopinf.studies.benchmark import mechanical_data
+    from dolfinx_lopinf.core.synthetic import mechanical_data
     return mechanical_data("forced", r, n, seed)
 
 

@@ -23,8 +23,9 @@ import ufl
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.fem import galerkin_nonlinear as gn
 from dolfinx_lopinf.fem import probes
-from dolfinx_lopinf.fem.fom import OutputProbe, point_output_matrix
-from dolfinx_lopinf.fem.integrators import NewmarkIntegrator
+from dolfinx_lopinf.fem.loop import OutputProbe
+from dolfinx_lopinf.fem.state import point_output_matrix
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator
 from dolfinx_lopinf.fem.intrusive import reduced_matrix
 from dolfinx_lopinf.fem.streaming import StreamingPOD
 
@@ -133,6 +134,14 @@ def agree_cases():
     gf = gn.GalerkinForce(energy, u, B, sm)
     case("galerkin_q_differs", lambda: gf.force(np.array([0.1, 0.3 if other else 0.2])))
 
+    # SnapshotRecorder: a scheme named on one rank only; another recorded time on one rank
+    u_rec = dolfinx.fem.Function(V)
+    case("recorder_scheme_one_rank",
+         lambda: lo.SnapshotRecorder(u_rec, scheme="newmark" if other else None))
+    rec = lo.SnapshotRecorder(u_rec)
+    rec.record(0.0, u_rec)
+    case("recorder_time_differs", lambda: rec.record(2 * DT if other else DT, u_rec))
+
     # write_vtx: rank 0's path and states; the settings must agree; an unrelated folder stays
     d = Path(comm.bcast(tempfile.mkdtemp() if rank == 0 else None, root=0))
     S = np.ones((n, 2))
@@ -155,6 +164,23 @@ def fit_case():
     lo.fit(lo.Snapshots(times=t, Q=Q), 2)  # raises on rank 1 only, uncaught
     comm.Barrier()  # rank 0 waits here
     log(f"PASSED THE BARRIER rank={rank}")
+
+
+def late_case():
+    """snapshots() reached by rank 1 only seconds after rank 0 (as when a user calls it inside
+    ``if comm.rank == 0:``): rank 0 names the problem after LOPINF_MPI_TIMEOUT s, then both
+    finish once rank 1 arrives."""
+    import time
+
+    system, V, q0, v0 = string()
+    u_rec = dolfinx.fem.Function(V)
+    rec = lo.SnapshotRecorder(u_rec)
+    for k in range(3):
+        rec.record(k * DT, u_rec)
+    if other:
+        time.sleep(4.0)
+    snaps = rec.snapshots()
+    log(f"LATE DONE rank={rank} {None if snaps is None else snaps.Q.shape}")
 
 
 def sink_case(on_every_rank: bool):
@@ -183,6 +209,8 @@ if __name__ == "__main__":
         log(f"ALL DONE rank={rank}")
     elif which == "fit":
         fit_case()
+    elif which == "late":
+        late_case()
     elif which == "sink_one":
         sink_case(False)
     elif which == "sink_all":

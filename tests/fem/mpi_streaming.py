@@ -9,7 +9,7 @@ import dolfinx_lopinf  # noqa: F401  (first: the PyPI wheel orders MPI ahead of 
 from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx, ufl
 import dolfinx.fem.petsc
 from dolfinx_lopinf.core.basis import pod
-from dolfinx_lopinf.fem.fom import StateMap, gather_states
+from dolfinx_lopinf.fem.state import StateMap, gather_states
 from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.fem.streaming import StreamingPOD
 

@@ -10,7 +10,7 @@ import numpy as np
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.fem._dolfinx import MPI, dolfinx  # the wheel's MPI before dolfinx
-from dolfinx_lopinf.fem.fom import gather_states
+from dolfinx_lopinf.fem.state import gather_states
 from dolfinx_lopinf.fem.vtx import states_to_function, write_vtx
 
 out = Path(sys.argv[1])

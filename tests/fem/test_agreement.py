@@ -19,7 +19,7 @@ pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 from dolfinx_lopinf.errors import InputError  # noqa: E402
 
 SCRIPT = Path(__file__).with_name("mpi_disagree.py")
-TIMEOUT = 120  # s: every case of mpi_disagree.py takes ~10 s on 2 ranks together
+TIMEOUT = 120  # s: for every case of mpi_disagree.py on 2 ranks together, with a wide margin
 
 # case -> (error class, a piece of the message) expected on BOTH ranks
 CASES = {
@@ -46,6 +46,8 @@ CASES = {
     "pod_r_differs": ("RanksDisagreeError", r"StreamingPOD.compute: .* r \(rank 0: 1; rank 1: 2\)"),
     "galerkin_basis_nan_one_rank": ("InputError", r"basis contains 1 NaN/inf entries.*\[found on rank 1"),
     "galerkin_q_differs": ("RanksDisagreeError", r"GalerkinForce: .* q \(rank 0"),
+    "recorder_scheme_one_rank": ("InputError", r"SnapshotRecorder arguments differ between ranks \(scheme, order\)"),
+    "recorder_time_differs": ("InputError", r"record\(\) called with different times or inputs on different ranks \(\[\(0.001, None\), \(0.002, None\)\]\)"),
     "vtx_engine_differs": ("RanksDisagreeError", r"write_vtx: .* engine \(rank 0: 'BP4'; rank 1: 'BP5'\)"),
     "vtx_unrelated_folder": ("InputError", r"photos.bp' exists and is not a VTX .bp folder.*IMG_001.jpg"),
 }
@@ -127,6 +129,17 @@ def test_exception_on_one_rank_inside_the_loop_aborts_instead_of_hanging(mpiexec
     assert "sink failed at step 3 on rank 1" in out
     assert "rank 1 of 2 raised the RuntimeError above (sink failed at step 3 on rank 1) in run" in out
     assert "DONE rank=" not in out
+
+
+@pytest.mark.mpi
+def test_snapshots_reached_late_by_one_rank_is_named(mpiexec, tmp_path):
+    """rank 1 reaches rec.snapshots() 4 s after rank 0 (the pattern of a call made on rank 0
+    only): rank 0 says why it waits after LOPINF_MPI_TIMEOUT (1 s) and both finish."""
+    rc, out, seconds = _mpirun(mpiexec, "late", tmp_path, timeout=90, LOPINF_MPI_TIMEOUT="1")
+    assert rc == 0, out[-2000:]
+    assert "rank 0 of 2 has waited 1 s in SnapshotRecorder.snapshots() for the other ranks" in out
+    assert "call it on every rank" in out
+    assert "LATE DONE rank=0 (" in out and "LATE DONE rank=1 None" in out
 
 
 @pytest.mark.mpi

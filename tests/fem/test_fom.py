@@ -11,7 +11,7 @@ import ufl
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.fem._dolfinx import MPI, PETSc, dolfinx
-from dolfinx_lopinf.fem.fom import output_matrix_in_state
+from dolfinx_lopinf.fem.state import output_matrix_in_state
 from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.scenes import beam as scene
 
@@ -56,7 +56,7 @@ def test_hermite_dofs_mean_value_and_scaled_slope(beam):
     pts = np.array([[0.123, 0, 0], [0.5, 0, 0], [0.987, 0, 0]])
     E = dolfinx_lopinf_point_matrix(V, pts)
     assert np.allclose(E @ w.x.array, cubic(pts[:, 0]), atol=1e-13)
-    from dolfinx_lopinf.fem.fom import gather_states
+    from dolfinx_lopinf.fem.state import gather_states
 
     state = gather_states(V, w.x.array[: V.dofmap.index_map.size_local][:, None], beam.state_map)
     n = len(beam.x_nodes)
@@ -217,7 +217,9 @@ def _option_names(prefix):
 def test_integrators_share_one_protocol_and_leave_no_petsc_options(beam):
     """Midpoint (linear and Newton) and Newmark are Integrators; each gets its own options
     prefix; the options are gone from the global database once read; close() destroys."""
-    from dolfinx_lopinf.fem.integrators import Integrator, NewmarkIntegrator
+    from dolfinx_lopinf.fem.integrators import Integrator
+
+    from dolfinx_lopinf.fem.newmark import NewmarkIntegrator
 
     msh = dolfinx.mesh.create_interval(MPI.COMM_WORLD, 50, [-20.0, 20.0])
     V = dolfinx.fem.functionspace(msh, ("Lagrange", 1))
@@ -243,8 +245,9 @@ def test_integrators_share_one_protocol_and_leave_no_petsc_options(beam):
 def test_one_loop_drives_both_schemes_with_sinks(beam):
     """fom.run(integrator, n, sinks=...) is the loop run(system, ...) uses: the same states,
     outputs and energies; it drives Newmark too."""
-    from dolfinx_lopinf.fem.fom import EnergyProbe, FieldSnapshots, OutputProbe, run
-    from dolfinx_lopinf.fem.integrators import NewmarkIntegrator
+    from dolfinx_lopinf.fem.fom import run
+    from dolfinx_lopinf.fem.loop import EnergyProbe, FieldSnapshots, OutputProbe
+    from dolfinx_lopinf.fem.newmark import NewmarkIntegrator
 
     q0, v0 = beam.initial_state()
     snaps, info = lo.run(beam.system, q0, v0, scene.DT, 20 * scene.DT, output_matrix=beam.output_matrix,

@@ -20,8 +20,9 @@ import ufl  # noqa: E402
 import dolfinx_lopinf as lo  # noqa: E402
 from dolfinx_lopinf.errors import InputError  # noqa: E402
 from dolfinx_lopinf.fem._dolfinx import MPI, PETSc, dolfinx  # noqa: E402
-from dolfinx_lopinf.fem.fom import OutputProbe, point_output_matrix  # noqa: E402
-from dolfinx_lopinf.fem.integrators import NewmarkIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.loop import OutputProbe  # noqa: E402
+from dolfinx_lopinf.fem.state import point_output_matrix  # noqa: E402
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator  # noqa: E402
 from dolfinx_lopinf.fem.probes import probe_points  # noqa: E402
 
 DT = 1e-3

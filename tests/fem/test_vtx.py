@@ -17,7 +17,7 @@ from mpi4py import MPI
 
 import dolfinx_lopinf as lo
 from dolfinx_lopinf.errors import InputError
-from dolfinx_lopinf.fem.fom import StateMap
+from dolfinx_lopinf.fem.state import StateMap
 from dolfinx_lopinf.fem.vtx import state_rows, states_to_function, write_vtx
 
 TIMES = 0.1 * np.arange(4)

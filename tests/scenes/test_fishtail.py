@@ -7,7 +7,7 @@ import pytest
 pytest.importorskip("dolfinx_lopinf.fem._dolfinx")
 
 from dolfinx_lopinf.fem._dolfinx import MPI  # noqa: E402
-from dolfinx_lopinf.fem.integrators import NewmarkIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.newmark import NewmarkIntegrator  # noqa: E402
 from dolfinx_lopinf.scenes import fishtail as ft  # noqa: E402
 
 
@@ -18,7 +18,9 @@ def small():
 
 def _tip_history(f, nm, u, steps=40):
     """Newmark through the one time loop, with an output and an energy probe."""
-    from dolfinx_lopinf.fem.fom import EnergyProbe, OutputProbe, run
+    from dolfinx_lopinf.fem.fom import run
+
+    from dolfinx_lopinf.fem.loop import EnergyProbe, OutputProbe
 
     nm.initialize(f.chamber_pressures(0.0))
     y, e = OutputProbe(f.output_matrix), EnergyProbe()
@@ -62,7 +64,7 @@ def test_fishtail_demo_quick(quick_demo):
 def test_rigid_body_modes_span_the_kernel_of_free_elasticity():
     from dolfinx_lopinf.fem._dolfinx import dolfinx, ufl
     import dolfinx.fem.petsc
-    from dolfinx_lopinf.fem.integrators import rigid_body_modes
+    from dolfinx_lopinf.fem.newmark import rigid_body_modes
 
     msh = dolfinx.mesh.create_box(MPI.COMM_WORLD, [[0, 0, 0], [1, 0.5, 0.3]], [4, 3, 2])
     V = dolfinx.fem.functionspace(msh, ("Lagrange", 2, (3,)))

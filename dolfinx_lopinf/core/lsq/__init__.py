@@ -6,7 +6,7 @@ free (B), the compressed problem
 
     min_Theta  ||Theta L + Z||_F^2,     G = L L^T (p, p),  X = Z L^T (r, p)
 
-(see :class:`~dolfinx_lopinf.core.inference.GramData`), so their cost never depends on the number
+(see :class:`~dolfinx_lopinf.core.gram.GramData`), so their cost never depends on the number
 of snapshots K. A :class:`Problem` holds (L, Z, the block layout, eps); a strategy's
 ``solve(problem)`` returns ``(Theta, Certificate)``, the free columns minimised out exactly
 first (:func:`eliminate_free`):
@@ -26,9 +26,6 @@ first (:func:`eliminate_free`):
   (slow; the last resort).
 * :class:`Auto` - the default of :func:`~dolfinx_lopinf.core.infer_mechanical`.
 
-The functions of earlier versions (:func:`solve_psd_blocks`, :func:`solve_psd_single`,
-:func:`solve_ipm`) run these strategies and return ``(Theta, certificate dict)``.
-
 Layout: ``linalg`` (the shared numerics: objective, PSD projection, SPD solve, vech index
 tables, normal equations), ``problem`` (Problem, Certificate, KKT residuals, elimination of
 the free columns), ``lyapunov``, ``ipm``, ``face``, ``barrier``, ``blocks``, and
@@ -37,16 +34,15 @@ the free columns), ``lyapunov``, ``ipm``, ``face``, ``barrier``, ``blocks``, and
 iteration is the reference and the fallback, also with ``DOLFINX_LOPINF_JIT=0``).
 """
 
-from .barrier import Barrier, solve_ipm
-from .blocks import Auto, PSDBlocks, solve_psd_blocks
+from .barrier import Barrier
+from .blocks import Auto, PSDBlocks
 from .face import FaceADMM, FaceNewton, polish
 from .ipm import InteriorPoint, PrimalDualIPM, interior_point
 from .linalg import SPDSolver, psd_project, residual_norm2, symmetric_normal_equations
-from .lyapunov import EigenbasisADMM, Lyapunov, solve_psd_single, solve_symmetric
+from .lyapunov import EigenbasisADMM, Lyapunov, solve_symmetric
 from .problem import Certificate, Problem, Strategy, eliminate_free, kkt
 
 __all__ = ["Auto", "Barrier", "Certificate", "EigenbasisADMM", "FaceADMM", "FaceNewton",
            "InteriorPoint", "Lyapunov", "PSDBlocks", "PrimalDualIPM", "Problem", "SPDSolver",
            "Strategy", "eliminate_free", "interior_point", "kkt", "polish", "psd_project",
-           "residual_norm2", "solve_ipm", "solve_psd_blocks", "solve_psd_single",
-           "solve_symmetric", "symmetric_normal_equations"]
+           "residual_norm2", "solve_symmetric", "symmetric_normal_equations"]

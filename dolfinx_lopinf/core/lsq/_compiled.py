@@ -2,7 +2,7 @@
 (numba, optional; ``pip install '.[fast]'``).
 
 ``_start`` forms the scaled problem and the starting point in one call (the numpy path's
-``PrimalDualIPM.__init__`` and ``_start``: ~50 us of small numpy calls at r = 12); then one
+``PrimalDualIPM.__init__`` and ``_start``: many small numpy calls); then one
 call runs whole iterations - the Cholesky factors and inverses of the blocks X_k and
 Lambda_k, the HKM terms written straight into the Schur matrix, its Cholesky (LAPACK
 ``dpotrf``; ``spotrf`` in the early iterations of large problems, each solve checked in
@@ -278,7 +278,7 @@ def _is_pd_shifted(W, c, Lw):
 def _min_eig(W, dg, e):
     """Smallest eigenvalue of the symmetric W (overwritten): Householder reduction to a
     tridiagonal (dg, e) - backward stable, as LAPACK's eigvalsh - then bisection and Newton
-    on the tridiagonal (LAPACK's dsterf takes 10 us at r = 20, this 2)."""
+    on the tridiagonal (cheaper than all eigenvalues by LAPACK's dsterf at these sizes)."""
     r = W.shape[0]
     v = np.empty(r)
     for k in range(r - 2):  # W stays symmetric: row k holds column k

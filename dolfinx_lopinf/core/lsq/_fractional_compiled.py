@@ -5,9 +5,9 @@ same arithmetic in the same order (numba's np.linalg is LAPACK, as numpy's): the
 kernels of the Schur matrix gathered from one matrix product per block pair, the
 equilibrated Cholesky with the numpy path's diagonal shifts, the refined directions, the
 exact pencil step lengths and the update; ``_estimate`` is ``_State.gap_estimate``. Python
-keeps the loop, the certificate (``FractionalProblem.certify``, called a few times per fit)
-and the stall test, so the iterates agree with the numpy path to rounding (tests). Kernels
-compile on first use with ``cache=True`` (:func:`warm_up`).
+keeps the loop (``fractional._run_compiled``), the certificate (``FractionalProblem.certify``,
+called a few times per fit) and the stall test, so the iterates agree with the numpy path to
+rounding (tests). Kernels compile on first use with ``cache=True`` (:func:`warm_up`).
 """
 
 from __future__ import annotations
@@ -394,80 +394,32 @@ _SIGNATURES = {
              f"int64, int64, float64, float64)",
     "_estimate": f"float64({_A1}, {_A2}, {_A2}, {_A3}, float64, {_A2}, {_A1}, {_I2}, int64, int64, float64)",
 }
-_KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"),
-                          unavailable="the compiled learned-mass interior point is unavailable")
 # helpers are plain functions numba compiles inline with their callers (njit on first use)
 _HELPERS = ("_sym", "_theta", "_vech_blocks", "_blocks", "_kernel_block", "_schur", "_lin_parts",
             "_chol_solve", "_inv_chol", "_spd_inv", "_pencil", "_direction", "_steps")
 
 
-def kernels() -> dict:
-    if not getattr(kernels, "_helpers_done", False):
-        from numba import njit
+def _bind_helpers():
+    """Before the kernels compile: the interior point's LAPACK / BLAS kernels bound and compiled
+    (:mod:`._compiled`), the helpers jitted."""
+    from numba import njit
 
-        from . import _compiled
+    from . import _compiled
 
-        g = globals()
-        ipm = _compiled.kernels()  # LAPACK dpotrf / BLAS dtrsv bound and compiled there
-        g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
-        g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
-        for name in _HELPERS:
-            g[name] = njit(cache=True, error_model="numpy")(g[name])
-        kernels._helpers_done = True
-    return _KERNELS.kernels()
-
-
-def warm_up() -> float | None:
-    if not _jit.available():
-        return None
-    kernels()
-    return _KERNELS.compile_seconds
+    g = globals()
+    ipm = _compiled.kernels()  # LAPACK dpotrf / BLAS dtrsv bound and compiled there
+    g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
+    g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
+    for name in _HELPERS:
+        g[name] = njit(cache=True, error_model="numpy")(g[name])
 
 
-def run(problem, xs, gap_tol, max_iter):
-    """fractional._run_numpy with the compiled step and estimate."""
-    from .fractional import CERTIFY_AT, _stalled, _State
+_KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"), before=_bind_helpers,
+                          unavailable="the compiled learned-mass interior point is unavailable")
 
-    K = kernels()
-    ix = problem.index
-    st = _State.initial(problem, xs)
-    xs = np.ascontiguousarray(st.xs, dtype=float)
-    Y = np.ascontiguousarray(st.Y)
-    Om = np.ascontiguousarray(st.Om)
-    Lam = np.ascontiguousarray(st.Lam)
-    state = np.array([st.nu, st.tau, 0.0, 0.0, 0.0])
-    L = np.ascontiguousarray(problem.L)
-    a = np.ascontiguousarray(problem.a)
-    xf = np.ascontiguousarray(problem.x_floor)
-    full = np.array(ix.full, dtype=np.int64)  # writable copies: the signatures' arrays
-    iu0 = np.array(ix.iu[0], dtype=np.int64)
-    iu1 = np.array(ix.iu[1], dtype=np.int64)
-    Dw = np.ascontiguousarray(ix.Dw[:ix.nv])
-    r, b = problem.r, problem.n_blocks
-    f_floor = problem.tau_of(0.0) * r / problem.rho  # tau's floor (F_FLOOR f_scale)
-    gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
-    best, best_state, trace, stopped = None, None, [], "max_iter"
-    it = 0
-    for it in range(1, max_iter + 1):
-        K["_step"](xs, Y, Om, Lam, state, L, a, xf, full, iu0, iu1, Dw, r, b, problem.rho, f_floor)
-        if state[4] or not np.isfinite(state[2]):
-            stopped = f"numerical failure at iteration {it}: Schur matrix not positive definite"
-            it -= 1
-            break
-        est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, gap_floor)
-        trace.append((float(state[2]), float(state[3]), float(est)))
-        stalled = _stalled(trace, est, gap_tol)
-        if est <= CERTIFY_AT * gap_tol or stalled:
-            c = problem.certify(xs, Y, state[1])
-            if best is None or c["duality_gap"] < best["duality_gap"]:
-                best, best_state = c, (xs.copy(), Y.copy(), float(state[1]))
-            if c["duality_gap"] <= gap_tol:
-                stopped = "certified"
-                break
-            if stalled:
-                stopped = f"stalled at iteration {it}"
-                break
-    if best_state is None:
-        best = problem.certify(xs, Y, state[1])
-        best_state = (xs, Y, float(state[1]))
-    return (*best_state[:2], best_state[2], it, best, stopped, trace)
+
+#: the compiled kernels (compiled, or loaded from numba's cache, on the first call)
+kernels = _KERNELS.kernels
+#: compile (or load) the kernels now: the seconds it took in this process (0.0 when already
+#: done), or None when the JIT is unavailable or disabled
+warm_up = _KERNELS.warm_up

@@ -104,10 +104,3 @@ class Barrier(Strategy):
                 step *= 0.5
             x = xn
         return x, steps
-
-
-def solve_ipm(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, *, gap_tol: float = 1e-10,
-              max_newton: int = 200) -> tuple[np.ndarray, dict]:
-    """:class:`Barrier` on ``Problem(L, Z, n_blocks, eps)``: ``(Theta, certificate dict)``."""
-    theta, cert = Barrier(gap_tol, max_newton).solve(Problem(L, Z, n_blocks, eps))
-    return theta, cert.as_dict()

@@ -95,15 +95,6 @@ def _resolved(problem: Problem):
     return resolved, ridge
 
 
-def solve_psd_blocks(L: np.ndarray, Z: np.ndarray, n_blocks: int, eps: float, **options
-                     ) -> tuple[np.ndarray, dict]:
-    """:class:`PSDBlocks` (``options``: its parameters) on ``Problem(L, Z, n_blocks, eps)``:
-    ``(Theta, certificate dict)``; ``["ipm"]["trace"]`` lists (step, centring sigma,
-    m mu / f) of every interior point iteration."""
-    theta, cert = PSDBlocks(**options).solve(Problem(L, Z, n_blocks, eps))
-    return theta, cert.as_dict()
-
-
 class Auto(Strategy):
     """The default of :func:`dolfinx_lopinf.core.infer_mechanical`.
 
@@ -115,18 +106,16 @@ class Auto(Strategy):
     ``ridge_raised_to``, ``gap_floor``). One block (K): the Lyapunov minimiser if it is
     >= eps I, else the interior point (:class:`InteriorPoint`, crossover included), and :class:`EigenbasisADMM` if that
     is not certified (held-out one-block fits, ``studies.held_out --conservative``: the
-    interior point took a median 2.6 ms at r = 20 where EigenbasisADMM took 46 ms).
+    interior point needs far fewer iterations than EigenbasisADMM there).
     ``method="admm"`` skips the interior point and the Lyapunov shortcut: the ADMM
     strategies alone (the comparison path).
 
     The interior point first tries the blocks whose symmetric minimiser is indefinite alone
     (``PSDBlocks(eliminate=True)``) only from r = ``ELIMINATE_FROM_R`` on: the attempt
     saves 7/8 of the Schur Cholesky per iteration, which pays only where that Cholesky is
-    the cost. Measured on the forced sets (1 BLAS thread), with the attempt against
-    without: r = 20 4.1 against 6.9 ms (compiled) and 5.9 against 12.8 ms (numpy); r = 4-8,
-    where it succeeds, 0.47 against 0.33 ms (compiled), 0.95 against 0.88 ms (numpy); r = 12
-    and 16, where it fails and the full run follows, 1.8 against 1.3 ms and 4.2 against 3.2 ms
-    (compiled), 3.5 against 2.6 ms (numpy).
+    the cost (large r); at small r, or where the attempt fails and the full run follows, it
+    costs more than it saves (``python -m dolfinx_lopinf.studies.benchmark --table`` times
+    both).
     """
 
     def __init__(self, method: str = "auto", backend: str = "auto"):

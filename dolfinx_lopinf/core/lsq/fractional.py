@@ -47,6 +47,12 @@ that they are) and Omega = A - nu W > 0,
 
 a concave scalar maximisation (the generalised eigenvalues of (A, W)). The bound is smooth in
 Y - no minimum eigenvalue edge - so directions the normalisation barely weighs do not ruin it.
+It holds only if every G_k >= 0, which :func:`_repair` establishes and checks against the
+rounding of G_k (extended precision) - else there is no bound (gap inf), never an invalid one.
+On near-exact data the K, C rows of L span 1e14 and the interior point's dual residual lies
+along their weak directions, where a repair moves Y by residual / sigma_min: the certificate
+then also tries the projection of Y that zeroes the floor blocks exactly
+(:func:`projected_dual`, :meth:`FractionalProblem.certify_best`) and keeps the better bound.
 ``duality_gap`` = (phi - bound) / max(f, GAP_FLOOR f_scale).
 """
 
@@ -192,6 +198,20 @@ class FractionalProblem:
         """tau = rho max(f, F_FLOOR f_scale) / r (F_FLOOR: exact data)."""
         return self.rho * max(f, F_FLOOR * self.f_scale, 1e-300) / self.r
 
+    def certify_best(self, xs, Y, tau, gap_tol) -> dict:
+        """:meth:`certify` with the interior point's Y and, when that does not meet ``gap_tol``,
+        with its projection :func:`projected_dual` (the floor blocks' residual removed): the
+        better of the two valid bounds (``dual`` names it)."""
+        c = dict(self.certify(xs, Y, tau), dual="interior point")
+        if c["duality_gap"] > gap_tol and self.n_blocks > 1:
+            try:
+                c2 = self.certify(xs, projected_dual(self, xs, Y), tau)
+            except (np.linalg.LinAlgError, ValueError):
+                return c
+            if c2["duality_gap"] < c["duality_gap"]:
+                c = dict(c2, dual="projected")
+        return c
+
     def certify(self, xs, Y, tau) -> dict:
         """The certificate of the slacks x with the dual Y (module docstring): ``duality_gap``
         of the regularised problem, ``misfit_gap`` of f against the unregularised minimum
@@ -202,16 +222,8 @@ class FractionalProblem:
         f = float(np.sum(V * np.linalg.solve(M, V)))
         X0 = M - self.floors[0]
         phi = f - tau * np.linalg.slogdet(X0)[1]
+        Y, valid = _repair(Y, L, r, b)
         G = _dot_extended(Y, L.T)
-        if b > 1:  # least-norm change of Y making sym(Y L_k^T) >= 0 for k >= 1
-            targets = []
-            for k in range(1, b):
-                Gs = sym(G[:, k * r:(k + 1) * r])
-                w, Q = np.linalg.eigh(Gs)
-                targets.append(from_eig(np.maximum(w, 0.0), Q) - Gs)
-            LS = L[r:]
-            Y = Y + scipy.linalg.lstsq(LS @ LS.T, np.hstack(targets).T, check_finite=False)[0].T @ LS
-            G = _dot_extended(Y, L.T)
         rest = sum(2.0 * float(np.sum(sym(G[:, k * r:(k + 1) * r]) * self.floors[k])) for k in range(1, b))
         A = sym(_dot_extended(np.hstack([Y, Y]), np.vstack([2.0 * L[:r].T, -Y.T])))
         lam = scipy.linalg.eigvalsh(A, self.W)
@@ -222,8 +234,80 @@ class FractionalProblem:
         lam0 = scipy.linalg.eigvalsh(A - tau * np.linalg.inv(X0), self.W, subset_by_index=[0, 0])[0]
         misfit_bound = float(np.sum(A * self.floors[0])) + (1.0 - wf) * lam0 + rest
         ref = self.gap_reference(f)
+        if not valid:  # no dual point the floors accept: no bound
+            bound = misfit_bound = -np.inf
         return {"duality_gap": float((phi - bound) / ref), "misfit_gap": float((f - misfit_bound) / ref),
                 "bound": float(bound), "phi": float(phi), "f": f, "tau": float(tau)}
+
+
+#: rounds of the floor blocks' repair (:func:`_repair`)
+REPAIR_ROUNDS = 4
+
+
+def _repair(Y, L, r, b):
+    """(Y + dY, valid): a least-norm change of Y making G_k = sym(Y L_k^T) >= 0 for the floor
+    blocks k >= 1, as the bound needs (an indefinite G_k leaves it -infinite). The data rows
+    L_k of near-exact data are ill-conditioned (singular values over 1e14), so one solve does
+    not land on the PSD cone: the least-norm dY is taken from L_S = L[r:] itself (not its normal
+    matrix, which squares the condition), G_k re-evaluated in extended precision and the step
+    repeated, each target a margin inside the cone. ``valid`` when every G_k's computed least
+    eigenvalue exceeds what the rounding can hide: p eps_x |Y| |L_k| (the extended product)
+    + r u |G_k| (the eigenvalues), all Frobenius norms."""
+    if b == 1:
+        return Y, True
+    u, ux = np.finfo(float).eps, float(np.finfo(np.longdouble).eps)
+    LS = L[r:]
+    p = L.shape[1]
+    for _ in range(REPAIR_ROUNDS + 1):
+        G = _dot_extended(Y, LS.T)
+        ny = float(np.linalg.norm(Y))
+        changes, ok = [], True
+        for k in range(b - 1):
+            Gs = sym(G[:, k * r:(k + 1) * r])
+            w, Q = np.linalg.eigh(Gs)
+            hide = p * ux * ny * float(np.linalg.norm(LS[k * r:(k + 1) * r])) + r * u * float(np.linalg.norm(Gs))
+            if w[0] >= hide:
+                changes.append(np.zeros_like(Gs))
+                continue
+            ok = False
+            changes.append(from_eig(np.maximum(w, 2.0 * hide) - w, Q))
+        if ok:
+            return Y, True
+        dYt = scipy.linalg.lstsq(LS, np.hstack(changes).T, check_finite=False, lapack_driver="gelsd")[0]
+        Y = Y + dYt.T
+    return Y, False
+
+
+def projected_dual(problem: FractionalProblem, xs, Y) -> np.ndarray:
+    """Y with its floor-block part removed: the M-weighted orthogonal projection of Y onto
+    {Y : sym(Y L_k^T) = 0, k >= 1}, i.e. G_k = 0 to rounding (the floors' multipliers set to
+    zero - right where they are inactive).
+
+    The interior point's Y carries its dual residual, and in the floor blocks that residual
+    lies along the directions the data hardly see (near-exact data: the K, C data rows have
+    singular values over 1e14): the least-norm repair of G_k >= 0 there moves Y by
+    residual / sigma_min and ruins the bound. A projection never divides by sigma: with
+    M = R R^T, sym(Y L_k^T) = 0 for all k >= 1 says R^T Y is orthogonal to the columns of
+    D = [vec(R^-1 E L_k)] (E the symmetric units), so Y' = R^-T (I - Q Q^T) R^T Y with Q from
+    a Householder QR of D (r p x (b - 1) r (r + 1) / 2, never its normal matrix): its G_k vanish
+    to u |Y| |L| whatever the conditioning, and Y' - Y is at most Y's own floor-block part."""
+    r, b, L = problem.r, problem.n_blocks, problem.L
+    if b == 1:
+        return Y
+    M = problem.theta(xs)[:, :r]
+    Rc = np.linalg.cholesky(M)
+    Ri = scipy.linalg.solve_triangular(Rc, np.eye(r), lower=True, check_finite=False)
+    i0, i1 = np.triu_indices(r)
+    off = (i0 != i1)[None, None, :]
+    cols = []
+    for k in range(1, b):
+        Lk = L[k * r:(k + 1) * r]
+        D = Ri[:, None, i0] * Lk[i1].T[None, :, :] + off * Ri[:, None, i1] * Lk[i0].T[None, :, :]
+        cols.append(D.reshape(-1, len(i0)))
+    Q = scipy.linalg.qr(np.hstack(cols), mode="economic", check_finite=False)[0]
+    e = (Rc.T @ Y).reshape(-1)
+    e = e - Q @ (Q.T @ e)
+    return scipy.linalg.solve_triangular(Rc, e.reshape(r, -1), lower=True, trans="T", check_finite=False)
 
 
 def _dot_extended(A, B) -> np.ndarray:
@@ -345,8 +429,8 @@ class MassInteriorPoint:
         run = _run_numpy
         if backend == "numba":
             try:
-                from . import _fractional_compiled
-                run = _fractional_compiled.run
+                from . import _fractional_compiled  # noqa: F401 - is it there?
+                run = _run_compiled
             except ImportError:  # not built yet
                 backend = "numpy"
         xs, Y, tau, it, best, stopped, trace = run(problem, xs, self.gap_tol, self.max_iter)
@@ -385,7 +469,7 @@ def _run_numpy(problem, xs, gap_tol, max_iter):
         trace.append((a, sigma, est))
         stalled = _stalled(trace, est, gap_tol)
         if est <= CERTIFY_AT * gap_tol or stalled:
-            c = problem.certify(state.xs, state.Y, state.tau)
+            c = problem.certify_best(state.xs, state.Y, state.tau, gap_tol)
             if best is None or c["duality_gap"] < best["duality_gap"]:
                 best, best_state = c, (state.xs.copy(), state.Y.copy(), state.tau)
             if c["duality_gap"] <= gap_tol:
@@ -395,8 +479,57 @@ def _run_numpy(problem, xs, gap_tol, max_iter):
                 stopped = f"stalled at iteration {it}"
                 break
     if best_state is None:
-        best = problem.certify(state.xs, state.Y, state.tau)
+        best = problem.certify_best(state.xs, state.Y, state.tau, gap_tol)
         best_state = (state.xs, state.Y, state.tau)
+    return (*best_state[:2], best_state[2], it, best, stopped, trace)
+
+
+def _run_compiled(problem, xs, gap_tol, max_iter):
+    """:func:`_run_numpy` with the compiled step and estimate (:mod:`._fractional_compiled`)."""
+    from . import _fractional_compiled
+
+    K = _fractional_compiled.kernels()
+    ix = problem.index
+    st = _State.initial(problem, xs)
+    xs = np.ascontiguousarray(st.xs, dtype=float)
+    Y = np.ascontiguousarray(st.Y)
+    Om = np.ascontiguousarray(st.Om)
+    Lam = np.ascontiguousarray(st.Lam)
+    state = np.array([st.nu, st.tau, 0.0, 0.0, 0.0])
+    L = np.ascontiguousarray(problem.L)
+    a = np.ascontiguousarray(problem.a)
+    xf = np.ascontiguousarray(problem.x_floor)
+    full = np.array(ix.full, dtype=np.int64)  # writable copies: the signatures' arrays
+    iu0 = np.array(ix.iu[0], dtype=np.int64)
+    iu1 = np.array(ix.iu[1], dtype=np.int64)
+    Dw = np.ascontiguousarray(ix.Dw[:ix.nv])
+    r, b = problem.r, problem.n_blocks
+    f_floor = problem.tau_of(0.0) * r / problem.rho  # tau's floor (F_FLOOR f_scale)
+    gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
+    best, best_state, trace, stopped = None, None, [], "max_iter"
+    it = 0
+    for it in range(1, max_iter + 1):
+        K["_step"](xs, Y, Om, Lam, state, L, a, xf, full, iu0, iu1, Dw, r, b, problem.rho, f_floor)
+        if state[4] or not np.isfinite(state[2]):
+            stopped = f"numerical failure at iteration {it}: Schur matrix not positive definite"
+            it -= 1
+            break
+        est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, gap_floor)
+        trace.append((float(state[2]), float(state[3]), float(est)))
+        stalled = _stalled(trace, est, gap_tol)
+        if est <= CERTIFY_AT * gap_tol or stalled:
+            c = problem.certify_best(xs, Y, state[1], gap_tol)
+            if best is None or c["duality_gap"] < best["duality_gap"]:
+                best, best_state = c, (xs.copy(), Y.copy(), float(state[1]))
+            if c["duality_gap"] <= gap_tol:
+                stopped = "certified"
+                break
+            if stalled:
+                stopped = f"stalled at iteration {it}"
+                break
+    if best_state is None:
+        best = problem.certify_best(xs, Y, state[1], gap_tol)
+        best_state = (xs, Y, float(state[1]))
     return (*best_state[:2], best_state[2], it, best, stopped, trace)
 
 

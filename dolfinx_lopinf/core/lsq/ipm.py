@@ -32,16 +32,16 @@ STEP_FRACTION = 0.98
 #: stall (the Schur matrix's rounding on weakly active constraints): the loop asks for the
 #: certificate (the face multipliers of Problem.dual_gap may already give it) and, without one,
 #: ends - the crossover (Newton on the face) takes over. A run of them, not one: a single
-#: short step is often followed by long ones, and at small r iterations cost less than the
-#: crossover (0.04 against ~1 ms at r = 4)
+#: short step is often followed by long ones, and at small r an iteration costs far less than
+#: the crossover
 STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3
 #: mixed precision: from MIXED_FROM_N unknowns on (r >= 16 with two blocks), while
 #: m mu / f > MIXED_ABOVE_GAP, the Schur matrix is factored in float32 (LAPACK spotrf: half the
-#: time of dpotrf at n = 420, which is 70 % of an iteration). Each solve with that factor is
-#: checked in float64: r = b - M dx (dsymv, 9 us), accepted if ||r|| <= MIXED_MAX_RESIDUAL ||b||
-#: - an inexact Newton direction, which the iteration absorbs: each one recomputes its
-#: residuals in float64 (seen: ||r|| / ||b|| ~ 1e-6 - 1e-4). If spotrf fails or a residual is
-#: larger, the iteration is redone in float64 and the run stays there (the Schur matrix's
+#: memory traffic and twice the SIMD width of dpotrf, and that factorisation dominates an
+#: iteration there). Each solve with that factor is checked in float64: r = b - M dx (one
+#: dsymv), accepted if ||r|| <= MIXED_MAX_RESIDUAL ||b|| - an inexact Newton direction, which
+#: the iteration absorbs: each one recomputes its residuals in float64 (seen: ||r|| / ||b|| ~
+#: 1e-6 - 1e-4). If spotrf fails or a residual is larger, the iteration is redone in float64 and the run stays there (the Schur matrix's
 #: condition has outgrown float32)
 MIXED_FROM_N, MIXED_ABOVE_GAP, MIXED_MAX_RESIDUAL = 256, 1e-4, 1e-2
 
@@ -325,7 +325,7 @@ class PrimalDualIPM:
         for k in range(self.n_blocks):  # the diagonal blocks' upper triangles; the rest stays 2 H
             Ms_flat[self.diag_pos[k]] = hkm[k]
         # lower Cholesky of the F-ordered view Ms^T (its lower triangle is Ms's upper one, the
-        # part written above), 20 % faster than the upper one; no diagonal scaling is needed
+        # part written above), faster than the upper one; no diagonal scaling is needed
         # (Cholesky's accuracy does not depend on one)
         if single:  # the F-ordered copy rounded to float32 (the compiled kernel's _potrf32)
             c, status = scipy.linalg.lapack.spotrf(self.Ms.T.astype(np.float32), lower=1, clean=0,

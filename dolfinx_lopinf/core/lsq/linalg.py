@@ -43,8 +43,7 @@ def psd_project(A: np.ndarray, floor: float):
 def cholesky_solve(c: np.ndarray, b: np.ndarray) -> np.ndarray:
     """x with L L^T x = b for the lower Cholesky factor L in ``c`` (its upper triangle is not
     read) and one right-hand side: two triangular solves (``dtrsv``). OpenBLAS's ``dpotrs``
-    goes through the blocked ``trsm`` and is 5-7x slower for a single vector (n = 420:
-    135 us against 20 us). A float32 factor (the interior point's mixed precision) solves
+    goes through the blocked ``trsm``, much slower for a single vector. A float32 factor (the interior point's mixed precision) solves
     with ``b`` rounded to float32 (``strsv``) and returns float64."""
     if c.dtype == np.float32:
         y = scipy.linalg.blas.strsv(c, b.astype(np.float32), lower=1)
@@ -59,9 +58,9 @@ _SCRATCH_LOCK = threading.Lock()
 
 def lease(shape, dtype=np.float64) -> np.ndarray:
     """An uninitialised array (float64 unless ``dtype``) for a temporary that does not
-    outlive its caller (give it back with :func:`release`). A fresh n x n array costs a page fault per 4 kB on first
-    touch - about 0.5 ms for the 420 x 420 matrices of an r = 20 fit, as much as their
-    Cholesky - so the large temporaries of the interior point are reused between fits."""
+    outlive its caller (give it back with :func:`release`). A fresh n x n array costs a page
+    fault per 4 kB on first touch - for the 420 x 420 matrices of an r = 20 fit about as much
+    as their Cholesky - so the large temporaries of the interior point are reused between fits."""
     key = (tuple(shape), np.dtype(dtype))
     with _SCRATCH_LOCK:
         free = _SCRATCH.get(key)

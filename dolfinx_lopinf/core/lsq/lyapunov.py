@@ -34,14 +34,6 @@ def solve_symmetric(L: np.ndarray, Z: np.ndarray) -> np.ndarray:
     return 0.5 * (K + K.T)
 
 
-def solve_psd_single(L: np.ndarray, Z: np.ndarray, eps: float, *, start=None, tol: float = 1e-10,
-                     max_iter: int = 20000) -> tuple[np.ndarray, dict]:
-    """min ||K L + Z||_F^2 over K = K^T >= eps I (L is r x r) by ADMM on K = W
-    (:class:`EigenbasisADMM`); returns ``(K, certificate dict)``."""
-    K, cert = EigenbasisADMM(tol=tol, max_iter=max_iter, start=start).solve(Problem(L, Z, 1, eps))
-    return K, cert.as_dict()
-
-
 class Lyapunov(Strategy):
     """One symmetric block, no definiteness: :func:`solve_symmetric` (closed form)."""
 

@@ -144,7 +144,7 @@ class Problem:
     blocks S_k >= eps I (r x r each), then ``n_free`` free columns F.
 
     ``L`` (p, p) is the factor of the Gram matrix G = L L^T and ``Z`` (r, p) the data term
-    (:func:`dolfinx_lopinf.core.inference.gram_data`), so nothing here depends on the number of
+    (:func:`dolfinx_lopinf.core.gram.gram_data`), so nothing here depends on the number of
     snapshots. In the vech unknowns x of the blocks (no free columns),
     f = x^T H x + 2 h^T x + ||Z||^2 with ``H, h = normal_equations``.
     """
@@ -195,10 +195,10 @@ class Problem:
         sets have 1e5 - 1e7). Where cond(H) > COND_MAX - rank-deficient data, whose condition
         the normal equations square, so gram_data's ridge 1e-9 sigma_1 is invisible in them -
         the interior point's directions carry errors ~u cond(H) and its dual residual stalls
-        (r = 16 - 20: gaps 1e-4 - 1e-3, then ADMM and the barrier for 1-4 s, uncertified):
+        (r = 16 - 20: gaps 1e-4 - 1e-3, then ADMM and the barrier, long and uncertified):
         the ridge is raised (:meth:`with_ridge`) to the first of RIDGE_STEPS that brings the
-        condition to COND_MAX. Computed only when asked (the estimate costs ~0.2 ms at
-        r = 20): :class:`~dolfinx_lopinf.core.lsq.Auto` asks after the interior point fails."""
+        condition to COND_MAX. Computed only when asked (the estimate costs a factorisation
+        of H): :class:`~dolfinx_lopinf.core.lsq.Auto` asks after the interior point fails."""
         return self._resolution
 
     @functools.cached_property
@@ -219,7 +219,7 @@ class Problem:
     def with_ridge(self, ridge: float):
         """The problem plus gamma^2 ||Theta diag(s)||^2, s_j = ||L_j|| (the data rows' norms),
         gamma = ``ridge`` sigma_1(diag(1/s) L): the ridge of
-        :func:`~dolfinx_lopinf.core.inference.gram_data`, once more. One QR of
+        :func:`~dolfinx_lopinf.core.gram.gram_data`, once more. One QR of
         [[L^T, Z^T], [gamma diag(s), 0]], whose leading block row is [L'^T, Z'^T] (the
         constant ||R_22||^2 dropped, as ``gram_data`` drops the data's own)."""
         p, r = self.L.shape[0], self.r

@@ -6,7 +6,7 @@ primal-dual interior point (HKM direction, Mehrotra predictor-corrector).
 H > 0 (n x n), A_k: x -> vech of an n_k x n_k symmetric matrix, given by a dense
 (n_k (n_k + 1) / 2, n) matrix P_k (vech: the upper triangle, row by row; the entry (i, j) of
 vech stands for both (i, j) and (j, i)), F_k the floors. The polynomial (sum-of-squares)
-potential fit is one (:mod:`dolfinx_lopinf.core.polynomial_sos`): a Gram matrix of
+potential fit is one (:mod:`dolfinx_lopinf.core.polynomial.sos`): a Gram matrix of
 (r + r (r + 1) / 2)^2 / 2 unknowns and two small blocks.
 
 Newton (multipliers Lambda_k eliminated, dLambda = sym(X^-1 (R - dX Lambda))):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from dolfinx_lopinf.fem._dolfinx import PETSc, dolfinx
-from dolfinx_lopinf.fem.fom import gather_states, output_matrix_in_state, point_output_matrix
+from dolfinx_lopinf.fem.state import gather_states, output_matrix_in_state, point_output_matrix
 from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 
 

@@ -1,4 +1,4 @@
-"""The sum-of-squares potential fit of :mod:`dolfinx_lopinf.core.polynomial` by our certified
+"""The sum-of-squares potential fit of :mod:`dolfinx_lopinf.core.polynomial.fit` by our certified
 interior point (:mod:`dolfinx_lopinf.core.lsq.psd_qp`) instead of Clarabel.
 
 Unknowns (balanced units, as the cvxpy formulation): g = vech(G) of the Gram matrix of
@@ -26,14 +26,14 @@ from math import comb
 import numpy as np
 import scipy.linalg
 
-from .lsq import psd_qp
-from .lsq.psd_qp import vech
+from .._blas import one_blas_thread
+from ..lsq import psd_qp
+from ..lsq.psd_qp import vech
+from .potential import gram_maps
 
 @functools.lru_cache(maxsize=8)
 def gram_map_vech(r: int) -> np.ndarray:
     """(p_pot, n_g (n_g + 1) / 2): the monomial coefficients of m^T G m from vech(G)."""
-    from .polynomial import gram_maps
-
     Mall = np.vstack(gram_maps(r))
     n = r + comb(r + 1, 2)
     i, j = np.triu_indices(n)
@@ -64,11 +64,9 @@ def moment_matrix(points, r):
 
 def solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol=1e-8, points=None,
               f_const=0.0):
-    """One BLAS thread (:func:`~dolfinx_lopinf.core.inference._serial_blas`: its matrices are
+    """One BLAS thread (:func:`~dolfinx_lopinf.core._blas.serial_blas`: its matrices are
     a few hundred wide; threads cost more than they give there)."""
-    from .inference import _blas_controller
-
-    with _blas_controller().limit(limits=1, user_api="blas"):
+    with one_blas_thread():
         return _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, points, f_const)
 
 
