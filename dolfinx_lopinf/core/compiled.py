@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+import threading
 import time
 import warnings
 
@@ -363,6 +364,11 @@ def jit(func, signature=None, **options):
     return numba.njit(*args, cache=False, **options)(func)
 
 
+#: serialises every KernelSet build in the process (sets call one another's kernels; a
+#: background build and a foreground one must not both compile the same module's globals)
+BUILD_LOCK = threading.RLock()
+
+
 class KernelSet:
     """Named numba kernels of one module, compiled (or loaded from numba's cache) together on
     first use. Each compiled kernel replaces the module global of its name, so kernels that
@@ -386,8 +392,14 @@ class KernelSet:
         self.compile_seconds: float | None = None  # of the first kernels() in this process
 
     def kernels(self) -> dict:
-        """The compiled kernels (compiled or loaded from the cache on the first call)."""
-        if self._kernels is None:
+        """The compiled kernels (compiled or loaded from the cache on the first call). Builds
+        are serialised process-wide (:data:`BUILD_LOCK`): a set built in a background thread
+        while another thread asks for it (or for a set it calls) is built once."""
+        if self._kernels is not None:
+            return self._kernels
+        with BUILD_LOCK:
+            if self._kernels is not None:  # built while this thread waited
+                return self._kernels
             why = _numba_missing()
             if why is not None:
                 raise InputError(f"{self._unavailable}: {why}")
@@ -396,7 +408,8 @@ class KernelSet:
             t0 = time.perf_counter()
             out = {}
             for name in self._order:
-                out[name] = jit(self._ns[name], self._signatures[name],
+                fn = getattr(self._ns[name], "py_func", self._ns[name])  # a retry after a failure
+                out[name] = jit(fn, self._signatures[name],
                                 fastmath=self._fastmath.get(name, {"contract"}), error_model="numpy")
                 self._ns[name] = out[name]
             self._kernels = out

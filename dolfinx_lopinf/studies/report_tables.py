@@ -265,8 +265,8 @@ def _tables_learned_mass(m) -> list[str]:
         learned = [r for r in rows if r["method"] == "lopinf_mass_learned"]
         out += ["", "The learned-mass fits:", ""]
         out += listing(learned, [("r", "r", ""), ("solver", "solver", ""),
-                                 ("certified_gap", "duality gap", "error"),
-                                 ("infer_seconds", "fit s", "seconds")])
+                                 ("certified", "certified", ""), ("duality_gap", "duality gap", "error"),
+                                 ("iterations", "iterations", ""), ("infer_seconds", "fit s", "seconds")])
     return out
 
 

@@ -353,3 +353,69 @@ def test_the_bound_is_never_above_the_objective_on_near_exact_data(r):
     for dual in (Y, fractional.projected_dual(p, xs, Y)):
         c = p.certify(xs, dual, tau)
         assert c["bound"] <= c["phi"] + 1e-13 * abs(c["phi"]), c
+
+
+def test_a_cold_cache_fits_with_numpy_and_builds_the_kernels_aside(monkeypatch):
+    """backend="auto" with the compiled iteration not ready (a fresh machine: tens of seconds
+    of compilation): that fit runs the numpy iteration and the build starts in the background;
+    once ready, the compiled one. backend="numba" never falls back."""
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    p = _prepared().problem
+    started = []
+    monkeypatch.setattr(fc, "ready", lambda: False)
+    monkeypatch.setattr(fc, "compile_in_background", lambda: started.append(True))
+    cold = fractional.MassInteriorPoint().solve(p)[3]
+    assert cold.converged and cold.details["backend"] == "numpy" and started == [True]
+    assert fractional.MassInteriorPoint(backend="numba").solve(p)[3].details["backend"] == "numba"
+    monkeypatch.setattr(fc, "ready", lambda: True)
+    assert fractional.MassInteriorPoint().solve(p)[3].details["backend"] == "numba"
+
+
+def test_ready_reads_the_cache_of_this_source():
+    """ready() is True once the kernels are built (here or in numba's cache) - the check that
+    decides between the compiled and the numpy iteration must not claim a cold cache warm."""
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    fc.warm_up()
+    assert fc.ready()
+    assert fc._cached(fc._step.py_func)  # the index of this source and machine
+
+
+def _noop(a, b):
+    return a + b
+
+
+def test_a_function_never_compiled_is_not_cached():
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    assert not fc._cached(_noop)
+
+
+def test_the_compensated_product_is_exact_where_extended_precision_is_not():
+    """G_k = sym(Y L_k^T) of near-exact data is a small difference of large terms (Y nearly
+    orthogonal to L_k's rows): _dot2 / _sym2 stay within their stated bound of the exact
+    value (rational arithmetic), where numpy's extended precision errs by ~1e-15 on a
+    1e-11 result."""
+    from fractions import Fraction
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((5, 30)) * 1e3
+    B = rng.standard_normal((5, 30))
+    A = A - (A @ np.linalg.pinv(B)) @ B  # A B^T ~ 1e-11 from terms ~1e3
+    exact = np.array([[float(sum(Fraction(a) * Fraction(b) for a, b in zip(A[i], B[j]))) for j in range(5)]
+                      for i in range(5)])
+    hi, lo, bound = fractional._dot2(A, B)
+    assert np.all(np.abs(hi + lo - exact) <= bound + 1e-300)
+    assert np.abs(hi + lo - exact).max() <= 1e-12 * np.abs(exact).max()
+    G, err = fractional._sym2(hi, lo, bound)
+    assert np.all(np.abs(G - 0.5 * (exact + exact.T)) <= err)

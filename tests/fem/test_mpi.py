@@ -98,4 +98,9 @@ def test_quick_demos_two_ranks_equal_serial(demo, tmp_path, quick_demo, mpiexec)
         tol = _error_tolerance(a, sv, delta)
         for key in ("train_error", "test_error", "test_output_error"):
             if key in a and np.isfinite(a[key]):
+                if a[key] > 1.0:  # a diverged model (e.g. an unconstrained peer): its growth
+                    # amplifies rounding without bound (8.05e4 vs 8.06e4 between two 2-rank runs
+                    # of one code), so only the verdict must agree
+                    assert not np.isfinite(b[key]) or b[key] > 1.0, (a["method"], a["r"], key)
+                    continue
                 assert b[key] == pytest.approx(a[key], rel=1e-4, abs=tol), (a["method"], a["r"], key, tol)

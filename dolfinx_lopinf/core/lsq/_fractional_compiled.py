@@ -5,12 +5,24 @@ same arithmetic in the same order (numba's np.linalg is LAPACK, as numpy's): the
 kernels of the Schur matrix gathered from one matrix product per block pair, the
 equilibrated Cholesky with the numpy path's diagonal shifts, the refined directions, the
 exact pencil step lengths and the update; ``_estimate`` is ``_State.gap_estimate``. Python
-keeps the loop (``fractional._run_compiled``), the certificate (``FractionalProblem.certify``,
-called a few times per fit) and the stall test, so the iterates agree with the numpy path to
-rounding (tests). Kernels compile on first use with ``cache=True`` (:func:`warm_up`).
+keeps the loop, the certificate (``FractionalProblem.certify``, called a few times per fit)
+and the stall test, so the iterates agree with the numpy path to rounding (tests). Kernels
+compile with ``cache=True``; later processes load them from numba's cache.
+
+Cold cache. Compiling them (with the Mh = I kernels of :mod:`._compiled` they call) takes
+tens of seconds - LLVM optimising a 10 MB module - which a fresh machine (CI) would pay inside
+its first learned-mass fit. So ``backend="auto"`` runs the compiled iteration only when it
+is :func:`ready` (built in this process, or in numba's cache for this source and machine);
+otherwise that fit takes the numpy iteration (the same iterates to rounding) and
+:func:`compile_in_background` builds the kernels in a daemon thread (LLVM runs outside the
+GIL), for the fits after it and, through the cache, for later processes. ``backend="numba"``
+and :func:`warm_up` compile synchronously (a background build in progress is waited for).
 """
 
 from __future__ import annotations
+
+import threading
+import warnings
 
 import numpy as np
 
@@ -60,7 +72,9 @@ def _blocks(x, full, r, b):
 
 
 def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
-    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel)."""
+    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel); a diagonal
+    block (ro == co) symmetrised, an off-diagonal one mirrored into H[co + (ab), ro + (ij)]
+    (the Schur matrix is symmetric to rounding: fractional.schur_terms)."""
     r = Ps.shape[1]
     nv = iu0.shape[0]
     Pm = np.empty((r * r, nt))
@@ -80,6 +94,16 @@ def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
             cq = 0.5 if a == bb else 1.0
             H[ro + p, co + q] = cp * cq * (Phi[j * r + a, bb * r + i] + Phi[j * r + bb, a * r + i]
                                            + Phi[i * r + a, bb * r + j] + Phi[i * r + bb, a * r + j])
+    if ro == co:
+        for p in range(nv):
+            for q in range(p + 1, nv):
+                v = 0.5 * (H[ro + p, co + q] + H[ro + q, co + p])
+                H[ro + p, co + q] = v
+                H[ro + q, co + p] = v
+    else:
+        for p in range(nv):
+            for q in range(nv):
+                H[co + q, ro + p] = H[ro + p, co + q]
 
 
 def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
@@ -102,7 +126,7 @@ def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
     Qs = np.empty((9, r, r))
     coefs = np.empty(9)
     for k in range(b):
-        for l in range(b):
+        for l in range(k, b):  # the pairs below: transposes (_kernel_block mirrors them)
             ks, ls = slice(k * r, (k + 1) * r), slice(l * r, (l + 1) * r)
             Ps[0], Qs[0], coefs[0] = Mi, GY[ls, ks], 1.0
             Ps[1], Qs[1], coefs[1] = Om, GmY[ls, ks], 1.0 / s
@@ -284,8 +308,7 @@ def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f
             return
         Xi[k] = np.dot(SX[k].T, SX[k])
     H = np.empty((n, n))
-    _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H)
-    H = 0.5 * (H + H.T)
+    _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H)  # symmetric
     d0 = 1.0 / np.sqrt(np.diag(H))
     ad = a * d0
     gam = 1.0 / np.dot(ad, ad)
@@ -411,15 +434,70 @@ def _bind_helpers():
     g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
     g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig"]
     for name in _HELPERS:
-        g[name] = njit(cache=True, error_model="numpy")(g[name])
+        g[name] = njit(cache=True, error_model="numpy")(getattr(g[name], "py_func", g[name]))
 
 
 _KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"), before=_bind_helpers,
                           unavailable="the compiled learned-mass interior point is unavailable")
 
 
-#: the compiled kernels (compiled, or loaded from numba's cache, on the first call)
-kernels = _KERNELS.kernels
-#: compile (or load) the kernels now: the seconds it took in this process (0.0 when already
-#: done), or None when the JIT is unavailable or disabled
-warm_up = _KERNELS.warm_up
+_START_LOCK = threading.Lock()
+_BACKGROUND: list = []  # the background build's thread, once started
+
+
+def kernels() -> dict:
+    """The compiled kernels (compiled, or loaded from numba's cache, on the first call; a
+    background build under way is waited for)."""
+    return _KERNELS.kernels()  # waits for a background build (compiled.BUILD_LOCK)
+
+
+def warm_up() -> float | None:
+    """Compile (or load) the kernels now: the seconds it took in this process (0.0 when already
+    done), or None when the JIT is unavailable or disabled."""
+    return _KERNELS.warm_up()
+
+
+def _cached(fn) -> bool:
+    """Whether numba's cache holds ``fn`` compiled from this source on this machine (its index
+    only - nothing is loaded or compiled; numba's own key: the machine and the bytecode)."""
+    from numba.core.caching import FunctionCache
+    from numba.core.registry import cpu_target
+
+    cache = FunctionCache(getattr(fn, "py_func", fn))
+    probe = cache._index_key("", cpu_target.target_context.codegen())
+    return any(key[1:] == probe[1:] for key in cache._cache_file._load_index())
+
+
+def ready() -> bool:
+    """Whether the compiled iteration runs now without compiling: built in this process, or
+    in numba's cache with the Mh = I kernels it calls (any doubt: False)."""
+    if _KERNELS.compile_seconds is not None:
+        return True
+    if _BACKGROUND or not _jit.available():  # a build under way holds numba's compiler lock
+        return False
+    try:
+        from . import _compiled
+
+        return all(_cached(globals()[name]) for name in _SIGNATURES) and \
+            all(_cached(getattr(_compiled, name)) for name in _compiled._SIGNATURES)
+    except Exception:  # noqa: BLE001 - numba's cache internals moved: compile when asked
+        return False
+
+
+def compile_in_background() -> None:
+    """Build the kernels in a daemon thread (once per process; module docstring)."""
+    with _START_LOCK:  # not compiled.BUILD_LOCK: the build holds that throughout
+        if _BACKGROUND or _KERNELS.compile_seconds is not None or not _jit.available():
+            return
+        thread = threading.Thread(target=_build_quietly, name="dolfinx_lopinf-mass-jit", daemon=True)
+        _BACKGROUND.append(thread)
+        thread.start()
+
+
+def _build_quietly() -> None:
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            kernels()
+    except Exception:  # noqa: BLE001 - a failed build leaves the numpy iteration in use
+        pass

@@ -115,7 +115,8 @@ def kernel(terms, r: int) -> np.ndarray:
 
 
 def schur_terms(Mi, Ym, Y, Om, s, L, r, b) -> dict:
-    """The LMI part of the Schur matrix as kernels per block pair (k, l) (module docstring)."""
+    """The LMI part of the Schur matrix as kernels per block pair (k, l), l >= k (module
+    docstring; the matrix is symmetric - to rounding - so the pairs below are the transposes)."""
     D = Ym - Y
     JY = L.copy()
     JY[:r] -= Y
@@ -128,7 +129,7 @@ def schur_terms(Mi, Ym, Y, Om, s, L, r, b) -> dict:
     DYm, DYt = D @ Ym.T, D @ Y.T
     out = {}
     for k in range(b):
-        for l in range(b):
+        for l in range(k, b):
             t = [(1.0, Mi, blk(GY, l, k)), (1.0 / s, Om, blk(GmY, l, k)), (h, DYm, blk(GY, l, k)),
                  (h, D @ row(L, l).T, Y @ row(JY, k).T), (-h, D @ row(JY, l).T, Ym @ row(JY, k).T),
                  (-h, DYt, blk(LJY, l, k))]
@@ -246,27 +247,32 @@ REPAIR_ROUNDS = 4
 
 def _repair(Y, L, r, b):
     """(Y + dY, valid): a least-norm change of Y making G_k = sym(Y L_k^T) >= 0 for the floor
-    blocks k >= 1, as the bound needs (an indefinite G_k leaves it -infinite). The data rows
-    L_k of near-exact data are ill-conditioned (singular values over 1e14), so one solve does
-    not land on the PSD cone: the least-norm dY is taken from L_S = L[r:] itself (not its normal
-    matrix, which squares the condition), G_k re-evaluated in extended precision and the step
-    repeated, each target a margin inside the cone. ``valid`` when every G_k's computed least
-    eigenvalue exceeds what the rounding can hide: p eps_x |Y| |L_k| (the extended product)
-    + r u |G_k| (the eigenvalues), all Frobenius norms."""
+    blocks k >= 1, as the bound needs (an indefinite G_k leaves it -infinite). G_k is the small
+    difference of terms |Y| |L_k| (Y nearly orthogonal to the rows of inactive floors), so it
+    is formed by a compensated dot product and symmetrised before rounding (:func:`_dot2`,
+    :func:`_sym2`: error u |G_k| + (2 p u)^2 |Y| |L|, where extended precision left p 1e-19
+    |Y| |L|, above the G_k of near-exact data), and ``valid`` when every computed least
+    eigenvalue exceeds that error plus the eigenvalues' r u |G_k|, less u |Y| |L_k|: the bound
+    holds for Y up to its own rounding (a dual point that is stationary in the floor blocks,
+    G_k = 0 as :func:`projected_dual` makes it, is only that to the rounding of Y; a step
+    below that level cannot be represented in Y).
+    The data rows L_k of near-exact data are ill-conditioned (singular values over 1e14): the
+    least-norm dY is taken from L_S = L[r:] itself (its normal matrix squares the condition),
+    G_k re-formed and the step repeated, each target a margin (twice the error) inside."""
     if b == 1:
         return Y, True
-    u, ux = np.finfo(float).eps, float(np.finfo(np.longdouble).eps)
+    u = np.finfo(float).eps
     LS = L[r:]
-    p = L.shape[1]
     for _ in range(REPAIR_ROUNDS + 1):
-        G = _dot_extended(Y, LS.T)
+        hi, lo, bound = _dot2(Y, LS)
         ny = float(np.linalg.norm(Y))
         changes, ok = [], True
         for k in range(b - 1):
-            Gs = sym(G[:, k * r:(k + 1) * r])
+            cols = slice(k * r, (k + 1) * r)
+            Gs, err = _sym2(hi[:, cols], lo[:, cols], bound[:, cols])
             w, Q = np.linalg.eigh(Gs)
-            hide = p * ux * ny * float(np.linalg.norm(LS[k * r:(k + 1) * r])) + r * u * float(np.linalg.norm(Gs))
-            if w[0] >= hide:
+            hide = float(np.linalg.norm(err)) + r * u * float(np.linalg.norm(Gs))
+            if w[0] >= hide - u * ny * float(np.linalg.norm(LS[cols])):
                 changes.append(np.zeros_like(Gs))
                 continue
             ok = False
@@ -276,6 +282,46 @@ def _repair(Y, L, r, b):
         dYt = scipy.linalg.lstsq(LS, np.hstack(changes).T, check_finite=False, lapack_driver="gelsd")[0]
         Y = Y + dYt.T
     return Y, False
+
+
+def _dot2(A, B):
+    """A @ B^T as an unevaluated sum hi + lo and a bound on its error, by the compensated dot
+    product (Ogita, Rump and Oishi's Dot2: Dekker's exact products, Knuth's exact sums) - as
+    if computed in twice the working precision: |hi + lo - A B^T| <= (p u)^2 |A| |B|^T."""
+    u = np.finfo(float).eps / 2
+    split = 134217729.0  # 2^27 + 1
+
+    def halves(x):
+        c = split * x
+        hi = c - (c - x)
+        return hi, x - hi
+
+    p = A.shape[1]
+    s = np.zeros((A.shape[0], B.shape[0]))
+    e = np.zeros_like(s)
+    (Ah, Al), (Bh, Bl) = halves(A), halves(B)
+    for j in range(p):
+        a, bcol = A[:, j][:, None], B[:, j][None, :]
+        prod = a * bcol
+        ah, al, bh, bl = Ah[:, j][:, None], Al[:, j][:, None], Bh[:, j][None, :], Bl[:, j][None, :]
+        perr = ((ah * bh - prod) + ah * bl + al * bh) + al * bl
+        t = s + prod
+        z = t - s
+        e += ((s - (t - z)) + (prod - z)) + perr
+        s = t
+    return s, e, (2.0 * p * u) ** 2 * (np.abs(A) @ np.abs(B).T)
+
+
+def _sym2(hi, lo, bound):
+    """(sym(hi + lo) rounded once, its error bound) for a square block of :func:`_dot2`: the
+    symmetric part is the small difference of large entries (Y L_k^T's antisymmetric part is
+    free), so it is summed before rounding."""
+    u = np.finfo(float).eps / 2
+    t = hi + hi.T
+    z = t - hi
+    terr = (hi - (t - z)) + (hi.T - z)
+    out = 0.5 * (t + (terr + lo + lo.T))
+    return out, u * np.abs(out) + 4.0 * u * u * np.abs(hi) + 0.5 * (bound + bound.T)
 
 
 def projected_dual(problem: FractionalProblem, xs, Y) -> np.ndarray:
@@ -428,11 +474,13 @@ class MassInteriorPoint:
         xs = start(problem) if x0 is None else np.array(x0, dtype=float)
         run = _run_numpy
         if backend == "numba":
-            try:
-                from . import _fractional_compiled  # noqa: F401 - is it there?
-                run = _run_compiled
-            except ImportError:  # not built yet
+            from . import _fractional_compiled as fc
+
+            if self.backend == "auto" and not fc.ready():  # cold cache: numpy now, build aside
+                fc.compile_in_background()
                 backend = "numpy"
+            else:
+                run = _run_compiled
         xs, Y, tau, it, best, stopped, trace = run(problem, xs, self.gap_tol, self.max_iter)
         ok = best is not None and best["duality_gap"] <= self.gap_tol
         cert = Certificate("mass-ipm", ok, it, seconds=time.perf_counter() - t0, method="lmi-hkm",
@@ -600,8 +648,11 @@ class _State:
         Xi = np.linalg.inv(X)
         H = np.empty((n, n))
         for (k, l), t in schur_terms(Mi, Ym, Y, Om, s, L, r, b).items():
-            H[k * nv:(k + 1) * nv, l * nv:(l + 1) * nv] = kernel(t + ([(1.0, Xi[k], Lam[k])] if k == l else []), r)
-        H = sym(H)
+            if k == l:
+                H[k * nv:(k + 1) * nv, k * nv:(k + 1) * nv] = sym(kernel(t + [(1.0, Xi[k], Lam[k])], r))
+            else:
+                H[k * nv:(k + 1) * nv, l * nv:(l + 1) * nv] = kernel(t, r)
+                H[l * nv:(l + 1) * nv, k * nv:(k + 1) * nv] = H[k * nv:(k + 1) * nv, l * nv:(l + 1) * nv].T
         d0 = 1.0 / np.sqrt(np.diag(H))
         gam = 1.0 / float((p.a * d0) @ (p.a * d0))  # + gam a a^T: the normalisation lifts the
         H += gam * np.outer(p.a, p.a)                # scale direction (the system is singular there)
