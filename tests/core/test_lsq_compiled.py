@@ -270,3 +270,19 @@ def test_mixed_precision_only_from_mixed_from_n():
     problem = _gram_problem(synthetic.mechanical_data("rigid", 12, 800))
     _, cert, _ = _solve(problem, "numpy")
     assert cert.converged and cert.details["ipm"]["float32_iterations"] == 0
+
+
+@needs_numba
+@pytest.mark.parametrize("n", [1, 3, 12])
+def test_psd_qp_compiled_kernel_equals_the_numpy_kernel(n):
+    """The sos interior point's Newton matrix kernel K(X^-1, Lambda), compiled, is the numpy
+    Kronecker kernel's matrix to rounding (non-symmetric P and Q too: every index is used)."""
+    from dolfinx_lopinf.core.lsq import psd_qp
+    from dolfinx_lopinf.core.lsq.fractional import kernel
+
+    rng = np.random.default_rng(n)
+    P, Q = rng.standard_normal((n, n)), rng.standard_normal((n, n))
+    H = psd_qp._kernel(P, Q, n)
+    ref = kernel([(1.0, P, Q)], n)
+    assert H.shape == ref.shape == (n * (n + 1) // 2,) * 2
+    assert np.abs(H - ref).max() <= 1e-14 * np.abs(ref).max()

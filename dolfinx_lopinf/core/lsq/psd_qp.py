@@ -44,6 +44,43 @@ GAP_FLOOR = 1e-6
 SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
 
 
+def _kernel_loop(P, Q, iu0, iu1, H):
+    """H = K(P, Q) (:func:`.fractional.kernel` with one term) entry by entry: P and Q are
+    n x n (in cache), where the numpy kernel gathers from their n^2 x n^2 Kronecker product."""
+    nv = iu0.shape[0]
+    for p in range(nv):
+        i, j = iu0[p], iu1[p]
+        cp = 0.5 if i == j else 1.0
+        for q in range(nv):
+            a, b = iu0[q], iu1[q]
+            cq = 0.5 if a == b else 1.0
+            H[p, q] = cp * cq * (P[j, a] * Q[b, i] + P[j, b] * Q[a, i] + P[i, a] * Q[b, j]
+                                 + P[i, b] * Q[a, j])
+
+
+_KERNEL_SIGNATURES = {"_kernel_loop": "void(float64[:, ::1], float64[:, ::1], int64[::1], int64[::1], "
+                                      "float64[:, ::1])"}
+_KERNELS = None
+
+
+def _kernel(P, Q, n):
+    """K(P, Q) for the Newton matrix: compiled when numba is there (the numpy kernel's
+    Kronecker gathers are most of an iteration's time from n ~ 40 on), else numpy."""
+    global _KERNELS
+    from .. import compiled as _jit
+
+    if _jit.resolve_backend("auto") == "numba":
+        if _KERNELS is None:
+            _KERNELS = _jit.KernelSet(globals(), _KERNEL_SIGNATURES,
+                                      unavailable="the compiled psd kernel is unavailable")
+        i, j, _, _ = _vech(n)
+        H = np.empty((len(i), len(i)))
+        _KERNELS.kernels()["_kernel_loop"](np.ascontiguousarray(P), np.ascontiguousarray(Q),
+                                            i.astype(np.int64), j.astype(np.int64), H)
+        return H
+    return kernel([(1.0, P, Q)], n)
+
+
 
 @functools.lru_cache(maxsize=32)
 def _vech(n: int):
@@ -200,7 +237,7 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         Xi = [np.linalg.inv(Xk) for Xk in X]
         S = 2.0 * p.H.copy()
         for k, (Pk, Xik, Lk, nk) in enumerate(zip(p.P, Xi, Lam, p.sizes)):
-            Kk = kernel([(1.0, Xik, Lk)], nk)
+            Kk = _kernel(Xik, Lk, nk)
             sel = p.selections[k]
             if sel is not None:  # P_k = scale x (a selection of unknowns): scatter, no products
                 idx, scale = sel
