@@ -32,7 +32,11 @@ def test_summary_compares_with_direct():
     assert out["exponents"]["1 ranks, direct"]["exponent"] == pytest.approx(1.0)
     assert out["exponents"]["1 ranks, cg+pmg"]["exponent"] is None
     assert len(out["table"]) == 3 and out["stopped"][0]["stopped"] == "memory"
-    assert "stopped 800k" in scaling._table(out)
+    table = scaling._table(out)
+    assert "stopped 800k" in table
+    head, rule, *rows = table.splitlines()[:5]  # a markdown table: header, rule, one line per case
+    assert head.startswith("| dofs") and rule.count("---|") == head.count("|") - 1
+    assert sum(line.startswith("| ") for line in table.splitlines()) == 1 + len(out["table"])
 
 
 @pytest.mark.parametrize("argv, match", [
@@ -56,3 +60,4 @@ def test_tiny_case_end_to_end(tmp_path):
     data = json.loads((tmp_path / "scaling.json").read_text())
     assert set(data["cases"][0]["phases_seconds"]) >= {"gmsh", "distribute", "forms", "assemble", "solver"}
     assert (tmp_path / "scaling.png").stat().st_size > 10_000
+    assert "| dofs | ranks |" in (tmp_path / "scaling.md").read_text()
