@@ -44,9 +44,13 @@ ERRORS = {
     "output": "relative error of the output, ||Y - Y_rom|| / ||Y||",
 }
 
+#: a run whose relative train or test error is above this has grown far past the truth: not
+#: stable, even when its states stay finite (a model that grows by 1e12 over the test window)
+DIVERGED_ERROR = 10.0
 #: the one definition of a stable ROM run
-STABLE_DEFINITION = ("states finite and, where the FOM energy of the reconstructed state is "
-                     "scored, relative FOM energy error finite and <= 1")
+STABLE_DEFINITION = ("states finite, relative train and test errors <= 10 and, where the FOM "
+                     "energy of the reconstructed state is scored, relative FOM energy error "
+                     "finite and <= 1")
 
 
 def stable(states, energy_error=None, *, bound: float = 1.0) -> bool:
@@ -84,10 +88,13 @@ def is_root(comm=None) -> bool:
 
 
 def rom_row(method: str, r: int, *, train_error, test_error, stable: bool, **fields) -> dict:
-    """One ROM row of metrics.json: method, r, the two errors of the scene's kind, stable,
-    and the scene's own fields (times, certificates, other errors)."""
+    """One ROM row of metrics.json: method, r, the two errors of the scene's kind, stable
+    (the caller's verdict, and no error above :data:`DIVERGED_ERROR`), and the scene's own
+    fields (times, certificates, other errors)."""
+    grown = any(e is not None and np.isfinite(e) and e > DIVERGED_ERROR
+                for e in (train_error, test_error))
     return {"method": str(method), "r": int(r), "train_error": train_error,
-            "test_error": test_error, **fields, "stable": bool(stable)}
+            "test_error": test_error, **fields, "stable": bool(stable) and not grown}
 
 
 def metrics(scene: str, *, error: str, quick: bool, roms: list | None, **fields) -> dict:

@@ -147,3 +147,15 @@ def test_report_reads_the_shared_vocabulary(quick_demo, tmp_path):
                                      if line.startswith("| beam | lopinf (mass-orthonormal) |")).split("|")]
     assert float(cells[6]) > 0 and cells[7].endswith("x"), cells
     assert (tmp_path / "report_beam.png").stat().st_size > 10_000
+
+
+def test_a_run_that_grew_far_past_the_truth_is_not_stable():
+    """A ROM whose states stay finite but whose error is 1e12 (it grew by that much) is not
+    reported as stable; an inaccurate but bounded one (error 1.5) keeps its verdict."""
+    from dolfinx_lopinf.studies import harness
+
+    assert not harness.rom_row("lopinf", 10, train_error=1e-3, test_error=6.7e12, stable=True)["stable"]
+    assert not harness.rom_row("opinf", 4, train_error=80.0, test_error=None, stable=True)["stable"]
+    assert harness.rom_row("lopinf", 2, train_error=0.1, test_error=1.5, stable=True)["stable"]
+    assert not harness.rom_row("lopinf", 2, train_error=0.1, test_error=0.2, stable=False)["stable"]
+    assert harness.rom_row("lopinf", 2, train_error=float("nan"), test_error=0.2, stable=True)["stable"]
