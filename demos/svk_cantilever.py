@@ -37,6 +37,10 @@
    energy and the FOM energy of the reconstruction, U_FOM(V q) = the intrusive potential on
    SVK); fit times, certificates, ROM (compiled and numpy loop) and FOM times.
 5. Deformed FOM | ROM renders (true scale, side view) at the largest unseen amplitude.
+
+Runs on any number of ranks (``mpiexec -n N python demos/svk_cantilever.py``) with the serial
+result: every rank holds the snapshots and does the ROM work (the Galerkin ROMs assemble on
+all of them); rank 0 prints and writes.
 """
 
 from __future__ import annotations
@@ -98,8 +102,15 @@ def half_step_inputs(amp, n_steps, dt):
     return (amp * scene.profile(dt * (np.arange(n_steps) + 0.5)))[None, :]
 
 
+def say(*args, **kwargs):
+    """print on rank 0 only."""
+    if harness.is_root():
+        print(*args, **kwargs)
+
+
 def fom_runs(cfg, material):
-    """Snapshots of every amplitude (training ones to t_train, test ones to t_end)."""
+    """Snapshots of every amplitude (training ones to t_train, test ones to t_end), on every
+    rank (the run gathers them on rank 0; the ROM work on every rank needs them)."""
     cant = scene.build(material, cfg["cells"])
     integ = lo.fem.MidpointIntegrator(cant.system, scene.DT, prefix=f"svk_{material.replace('-', '')}_")
     runs = {}
@@ -110,9 +121,10 @@ def fom_runs(cfg, material):
                              output_matrix=cant.output_matrix, state_map=cant.state_map,
                              integrator=integ, progress=False, record_velocity=False,
                              energy_every=0)
+        snaps = MPI.COMM_WORLD.bcast(snaps, root=0)
         runs[amp] = (snaps, info["seconds"])
-        print(f"  FOM {material} a = {amp:g}: {info['steps']} Newton steps in {info['seconds']:.1f} s, "
-              f"tip z min {snaps.Y[1].min():+.3f} m, tip x min {snaps.Y[0].min():+.3f} m")
+        say(f"  FOM {material} a = {amp:g}: {info['steps']} Newton steps in {info['seconds']:.1f} s, "
+            f"tip z min {snaps.Y[1].min():+.3f} m, tip x min {snaps.Y[0].min():+.3f} m")
     return cant, runs
 
 
@@ -216,12 +228,12 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     models["opinf_poly"] = (force, Cf, Bf)
     fits["opinf_poly"] = fcert
     cert = fits["poly_lopinf"]
-    print(f"  r = {r}: {pdata.Q.shape[1]} probes ({pdata.fom_steps} FOM steps, {pdata.seconds:.1f} s, "
-          f"estimate {probe_info['error_estimate_max']:.1e}); poly L-OpInf fit {cert['seconds']:.2f} s "
-          f"({cert['n_unknowns']['total']} unknowns, gap {cert['duality_gap']:.1e}, min eig G "
-          f"{cert['min_eig_gram']:.1e}), gradient-only fit {fits['poly_lopinf_ls']['seconds']:.2f} s, "
-          f"intrusive force misfit {imisfit:.1e}, ECSW {len(sampling.cells)} of "
-          f"{sampling.n_cells} cells (residual {sampling.residual:.1e})")
+    say(f"  r = {r}: {pdata.Q.shape[1]} probes ({pdata.fom_steps} FOM steps, {pdata.seconds:.1f} s, "
+        f"estimate {probe_info['error_estimate_max']:.1e}); poly L-OpInf fit {cert['seconds']:.2f} s "
+        f"({cert['n_unknowns']['total']} unknowns, gap {cert['duality_gap']:.1e}, min eig G "
+        f"{cert['min_eig_gram']:.1e}), gradient-only fit {fits['poly_lopinf_ls']['seconds']:.2f} s, "
+        f"intrusive force misfit {imisfit:.1e}, ECSW {len(sampling.cells)} of "
+        f"{sampling.n_cells} cells (residual {sampling.residual:.1e})")
     return models, fits, galerkin
 
 
@@ -269,8 +281,8 @@ def _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds):
                      "n_cells": s.n_cells, "ecsw_residual": s.residual, "tip_error": err,
                      "stable": bool(tr.stable), "rom_seconds": tr.seconds,
                      "speedup": fom_seconds[a] / tr.seconds})
-        print(f"    ECSW tol {tol:g}: {len(s.cells)}/{s.n_cells} cells, tip error {err:.2e}, "
-              f"ROM {tr.seconds:.2f} s")
+        say(f"    ECSW tol {tol:g}: {len(s.cells)}/{s.n_cells} cells, tip error {err:.2e}, "
+            f"ROM {tr.seconds:.2f} s")
     return rows
 
 
@@ -355,10 +367,10 @@ def main(argv=None):
         if len(cells) != 3 or min(cells) < 1:
             parser.error(f"--cells must be three positive integers 'nx,ny,nz', got {args.cells!r}")
         cfg["cells"] = cells
-    if MPI.COMM_WORLD.size > 1:
-        raise SystemExit("this demo runs on one rank")
+    root = harness.is_root()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if root:
+        out.mkdir(parents=True, exist_ok=True)
     dt = scene.DT
     t_start = time.perf_counter()
     jit_seconds = compiled.warm_up_polynomial()  # compile / load the ROM loop before any timer
@@ -375,10 +387,10 @@ def main(argv=None):
                                  output_matrix=lin.output_matrix, state_map=lin.state_map,
                                  progress=False, record_velocity=False, energy_every=0,
                                  state_until=2 * dt)
-    y_linear = lin_snaps.Y
+    y_linear = MPI.COMM_WORLD.bcast(lin_snaps.Y if root else None, root=0)
 
     for material in cfg["materials"]:
-        print(f"[{material}]")
+        say(f"[{material}]")
         cant, runs = fom_runs(cfg, material)
         M = dense_state_matrix(cant.system.mass_form, cant.V, cant.state_map)
         E_state = output_matrix_in_state(cant.V, cant.output_matrix, cant.state_map)
@@ -409,14 +421,17 @@ def main(argv=None):
                   fom_seconds={str(a): s for a, s in fom_seconds.items()},
                   linear_vs_nonlinear_tip_difference=float(
                       lo.relative_error(lin_nl["y_nonlinear"], lin_nl["y_linear"])))
-        _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long)
+        if root:
+            _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long)
         mm["render"] = _render(out, material, cfg, cant, runs[a_max][0], basis, state_series, rows)
-        _print_table(material, rows, long_rows, cfg)
+        if root:
+            _print_table(material, rows, long_rows, cfg)
     metrics["linear_fom_seconds"] = lin_info["seconds"]
     metrics.update(report_rows(metrics))
+    metrics["n_ranks"] = MPI.COMM_WORLD.size
     metrics["seconds"] = time.perf_counter() - t_start
     harness.write_metrics(out, metrics)
-    print(f"wrote {out / 'metrics.json'} ({metrics['seconds']:.0f} s)")
+    say(f"wrote {out / 'metrics.json'} ({metrics['seconds']:.0f} s)")
     return metrics
 
 
@@ -497,16 +512,13 @@ def _error_vs_r(path, rows, cfg, a, *, title):
 
 
 def _render(out, material, cfg, cant, snaps, basis, state_series, rows):
-    """Deformed shapes, true scale, side view: FOM | ROMs at the largest unseen amplitude."""
-    import pyvista
-    from dolfinx import plot
-
+    """Deformed shapes, true scale, side view: FOM | ROMs at the largest unseen amplitude.
+    Collective (the ranks' pieces of the mesh are gathered); drawn on rank 0."""
     dt, r = scene.DT, basis.r
     a = max(cfg["test_amps"])
-    topology, cell_types, geometry = plot.vtk_mesh(cant.V)
-    grid = pyvista.UnstructuredGrid(topology, cell_types, geometry)
+    grid = render.grid_on_root(cant.V)  # rank 0: the whole mesh, points = global dof blocks
 
-    def field(state):  # state coordinates -> (points, 3); one rank: points = dof blocks
+    def field(state):  # state coordinates -> (points, 3)
         return cant.state_map.to_dofs(state).reshape(-1, 3)
 
     steps = [int(round(t / dt)) for t in cfg["render_times"]]
@@ -520,8 +532,9 @@ def _render(out, material, cfg, cant, snaps, basis, state_series, rows):
         frames.append({label: field(Q[:, k] if label == "FOM" else Q[:, i])
                        for label, Q in columns.items()})
     path = out / f"deformed_{material}.png"
-    _side_by_side(path, grid, frames, titles=[f"t = {k * dt:.2f} s" for k in steps],
-                  title=f"{material}, a = {a:g} (unseen), true scale")
+    if grid is not None:
+        _side_by_side(path, grid, frames, titles=[f"t = {k * dt:.2f} s" for k in steps],
+                      title=f"{material}, a = {a:g} (unseen), true scale")
     errs = {}
     for label, Q in columns.items():
         if label != "FOM":
@@ -556,4 +569,12 @@ def _print_table(material, rows, long_rows, cfg):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except BaseException:
+        if MPI.COMM_WORLD.size > 1:  # one rank failing must not leave the others waiting
+            import traceback
+
+            traceback.print_exc()
+            MPI.COMM_WORLD.Abort(1)
+        raise
