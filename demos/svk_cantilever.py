@@ -1,6 +1,6 @@
 """Large-deformation 3D cantilever: a polynomial Lagrangian ROM learned as one convex fit.
 
-    python demos/svk_cantilever.py [--quick] [--out DIR]
+    python demos/svk_cantilever.py [--quick | --smoke] [--out DIR]
 
 1. FOM (:mod:`dolfinx_lopinf.scenes.svk_cantilever`): St. Venant-Kirchhoff (and neo-Hookean)
    cantilever, Q2 hexahedra, midpoint VI with PETSc SNES Newton, dt = 2e-3 s, a vertical body
@@ -72,6 +72,10 @@ FULL = dict(cells=(10, 1, 1), t_train=1.0, t_end=1.5, train_amps=[100.0, 250.0],
 QUICK = dict(cells=(6, 1, 1), t_train=0.8, t_end=1.0, train_amps=[100.0, 250.0],
              test_amps=[350.0], r_values=[4, 6], long_factor=5, materials=["svk"],
              ecsw_tol=1e-3, ecsw_states=80, ecsw_sweep=[], render_times=[0.3, 0.55, 0.7])
+#: the test suite's size (tests/fem/test_svk_mpi.py: 1 vs 2 ranks): every step of the demo,
+#: on 3 cells and short runs
+SMOKE = dict(QUICK, cells=(3, 1, 1), t_train=0.5, t_end=0.6, r_values=[4], long_factor=1,
+             ecsw_states=40, render_times=[0.3, 0.55])
 METHODS = ("poly_lopinf", "poly_lopinf_ls", "poly_lopinf_traj", "lopinf", "intrusive", "galerkin",
            "galerkin_ecsw", "opinf_poly")
 #: the polynomial L-OpInf fits whose long runs also use the energy-conserving AVF scheme
@@ -227,6 +231,7 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     force, Cf, Bf, fcert = pl.fit_force(pdata.data())
     models["opinf_poly"] = (force, Cf, Bf)
     fits["opinf_poly"] = fcert
+    models["_probes"] = pdata
     cert = fits["poly_lopinf"]
     say(f"  r = {r}: {pdata.Q.shape[1]} probes ({pdata.fom_steps} FOM steps, {pdata.seconds:.1f} s, "
         f"estimate {probe_info['error_estimate_max']:.1e}); poly L-OpInf fit {cert['seconds']:.2f} s "
@@ -353,12 +358,15 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="6 cells, SVK only, r in {4, 6}, one test amplitude")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the test suite's size: quick on 3 cells, training to 0.5 s, the "
+                             "unseen amplitude to 0.6 s, r = 4, long runs 1x")
     parser.add_argument("--out", default="results/svk_cantilever")
     parser.add_argument("--cells", default=None,
                         help="Q2 cells 'nx,ny,nz' (default 10,1,1; quick 6,1,1) - e.g. 20,2,2 to "
                              "give ECSW cells to drop (80 cells, 3075 dofs: ~10x the FOM time)")
     args = parser.parse_args(argv)
-    cfg = dict(QUICK if args.quick else FULL)
+    cfg = dict(SMOKE if args.smoke else QUICK if args.quick else FULL)
     if args.cells is not None:
         try:
             cells = tuple(int(c) for c in args.cells.split(","))
@@ -376,7 +384,8 @@ def main(argv=None):
     jit_seconds = compiled.warm_up_polynomial()  # compile / load the ROM loop before any timer
     metrics = {"scene": "svk_cantilever", "dt": dt, "t_train": cfg["t_train"], "t_end": cfg["t_end"],
                "train_amplitudes": cfg["train_amps"], "test_amplitudes": cfg["test_amps"],
-               "r_values": cfg["r_values"], "quick": bool(args.quick), "materials": {},
+               "r_values": cfg["r_values"], "quick": bool(args.quick), "smoke": bool(args.smoke),
+               "materials": {},
                "jit_compile_seconds": jit_seconds, "ecsw_tol": cfg["ecsw_tol"]}
 
     # --- the linear FOM at the largest amplitude: what the nonlinearity changes ----------------
@@ -392,6 +401,8 @@ def main(argv=None):
     for material in cfg["materials"]:
         say(f"[{material}]")
         cant, runs = fom_runs(cfg, material)
+        if root:  # the FOM outputs every fit is scored against (and tests/fem compare)
+            np.savez(out / f"fom_{material}.npz", **{f"Y_{a:g}": runs[a][0].Y for a in runs})
         M = dense_state_matrix(cant.system.mass_form, cant.V, cant.state_map)
         E_state = output_matrix_in_state(cant.V, cant.output_matrix, cant.state_map)
         b_state = cant.load_vector()
@@ -405,6 +416,10 @@ def main(argv=None):
         for r in cfg["r_values"]:
             basis = basis_full.truncate(r)
             models, fits, galerkin = _fit_models(cant, cfg, basis, runs, b_state, rng)
+            if root:  # the black-box probe data of this basis (the probe fits' only data) and
+                p = models["_probes"]  # the tip output of the basis (y = EV qh)
+                np.savez(out / f"probes_{material}_r{r}.npz", Q=p.Q, Vel=p.Vel, U=p.inputs, A=p.A,
+                         error_estimate=p.error_estimate, EV=E_state @ basis.V)
             r_rows, tip_series, state_series = _test_rows(material, cfg, r, basis, models, fits,
                                                           runs, E_state, fom_seconds)
             rows += r_rows
@@ -416,7 +431,9 @@ def main(argv=None):
             for method in METHODS:
                 fits_out.append({"r": r, "method": method, **fits[method]})
         mm = metrics["materials"].setdefault(material, {})
+        sv = np.concatenate(list(basis_full.singular_values.values()))
         mm.update(n_dofs=int(len(cant.state_map.order)), n_cells=int(np.prod(cfg["cells"])),
+                  pod_singular_values=sv[:20].tolist(),
                   rows=rows, long_runs=long_rows, fits=fits_out, ecsw_sweep=sweep_rows,
                   fom_seconds={str(a): s for a, s in fom_seconds.items()},
                   linear_vs_nonlinear_tip_difference=float(
