@@ -1,6 +1,6 @@
 """Large-deformation 3D cantilever: a polynomial Lagrangian ROM learned as one convex fit.
 
-    python demos/svk_cantilever.py [--quick] [--out DIR]
+    python demos/svk_cantilever.py [--quick | --smoke] [--out DIR]
 
 1. FOM (:mod:`dolfinx_lopinf.scenes.svk_cantilever`): St. Venant-Kirchhoff (and neo-Hookean)
    cantilever, Q2 hexahedra, midpoint VI with PETSc SNES Newton, dt = 2e-3 s, a vertical body
@@ -37,6 +37,10 @@
    energy and the FOM energy of the reconstruction, U_FOM(V q) = the intrusive potential on
    SVK); fit times, certificates, ROM (compiled and numpy loop) and FOM times.
 5. Deformed FOM | ROM renders (true scale, side view) at the largest unseen amplitude.
+
+Runs on any number of ranks (``mpiexec -n N python demos/svk_cantilever.py``) with the serial
+result: every rank holds the snapshots and does the ROM work (the Galerkin ROMs assemble on
+all of them); rank 0 prints and writes.
 """
 
 from __future__ import annotations
@@ -68,6 +72,10 @@ FULL = dict(cells=(10, 1, 1), t_train=1.0, t_end=1.5, train_amps=[100.0, 250.0],
 QUICK = dict(cells=(6, 1, 1), t_train=0.8, t_end=1.0, train_amps=[100.0, 250.0],
              test_amps=[350.0], r_values=[4, 6], long_factor=5, materials=["svk"],
              ecsw_tol=1e-3, ecsw_states=80, ecsw_sweep=[], render_times=[0.3, 0.55, 0.7])
+#: the test suite's size (tests/fem/test_svk_mpi.py: 1 vs 2 ranks): every step of the demo,
+#: on 3 cells and short runs
+SMOKE = dict(QUICK, cells=(3, 1, 1), t_train=0.5, t_end=0.6, r_values=[4], long_factor=1,
+             ecsw_states=40, render_times=[0.3, 0.55])
 METHODS = ("poly_lopinf", "poly_lopinf_ls", "poly_lopinf_traj", "lopinf", "intrusive", "galerkin",
            "galerkin_ecsw", "opinf_poly")
 #: the polynomial L-OpInf fits whose long runs also use the energy-conserving AVF scheme
@@ -98,8 +106,15 @@ def half_step_inputs(amp, n_steps, dt):
     return (amp * scene.profile(dt * (np.arange(n_steps) + 0.5)))[None, :]
 
 
+def say(*args, **kwargs):
+    """print on rank 0 only."""
+    if harness.is_root():
+        print(*args, **kwargs)
+
+
 def fom_runs(cfg, material):
-    """Snapshots of every amplitude (training ones to t_train, test ones to t_end)."""
+    """Snapshots of every amplitude (training ones to t_train, test ones to t_end), on every
+    rank (the run gathers them on rank 0; the ROM work on every rank needs them)."""
     cant = scene.build(material, cfg["cells"])
     integ = lo.fem.MidpointIntegrator(cant.system, scene.DT, prefix=f"svk_{material.replace('-', '')}_")
     runs = {}
@@ -110,9 +125,10 @@ def fom_runs(cfg, material):
                              output_matrix=cant.output_matrix, state_map=cant.state_map,
                              integrator=integ, progress=False, record_velocity=False,
                              energy_every=0)
+        snaps = MPI.COMM_WORLD.bcast(snaps, root=0)
         runs[amp] = (snaps, info["seconds"])
-        print(f"  FOM {material} a = {amp:g}: {info['steps']} Newton steps in {info['seconds']:.1f} s, "
-              f"tip z min {snaps.Y[1].min():+.3f} m, tip x min {snaps.Y[0].min():+.3f} m")
+        say(f"  FOM {material} a = {amp:g}: {info['steps']} Newton steps in {info['seconds']:.1f} s, "
+            f"tip z min {snaps.Y[1].min():+.3f} m, tip x min {snaps.Y[0].min():+.3f} m")
     return cant, runs
 
 
@@ -215,13 +231,14 @@ def _fit_models(cant, cfg, basis, runs, b_state, rng):
     force, Cf, Bf, fcert = pl.fit_force(pdata.data())
     models["opinf_poly"] = (force, Cf, Bf)
     fits["opinf_poly"] = fcert
+    models["_probes"] = pdata
     cert = fits["poly_lopinf"]
-    print(f"  r = {r}: {pdata.Q.shape[1]} probes ({pdata.fom_steps} FOM steps, {pdata.seconds:.1f} s, "
-          f"estimate {probe_info['error_estimate_max']:.1e}); poly L-OpInf fit {cert['seconds']:.2f} s "
-          f"({cert['n_unknowns']['total']} unknowns, gap {cert['duality_gap']:.1e}, min eig G "
-          f"{cert['min_eig_gram']:.1e}), gradient-only fit {fits['poly_lopinf_ls']['seconds']:.2f} s, "
-          f"intrusive force misfit {imisfit:.1e}, ECSW {len(sampling.cells)} of "
-          f"{sampling.n_cells} cells (residual {sampling.residual:.1e})")
+    say(f"  r = {r}: {pdata.Q.shape[1]} probes ({pdata.fom_steps} FOM steps, {pdata.seconds:.1f} s, "
+        f"estimate {probe_info['error_estimate_max']:.1e}); poly L-OpInf fit {cert['seconds']:.2f} s "
+        f"({cert['n_unknowns']['total']} unknowns, gap {cert['duality_gap']:.1e}, min eig G "
+        f"{cert['min_eig_gram']:.1e}), gradient-only fit {fits['poly_lopinf_ls']['seconds']:.2f} s, "
+        f"intrusive force misfit {imisfit:.1e}, ECSW {len(sampling.cells)} of "
+        f"{sampling.n_cells} cells (residual {sampling.residual:.1e})")
     return models, fits, galerkin
 
 
@@ -269,8 +286,8 @@ def _ecsw_sweep(material, cfg, cant, basis, models, runs, E_state, fom_seconds):
                      "n_cells": s.n_cells, "ecsw_residual": s.residual, "tip_error": err,
                      "stable": bool(tr.stable), "rom_seconds": tr.seconds,
                      "speedup": fom_seconds[a] / tr.seconds})
-        print(f"    ECSW tol {tol:g}: {len(s.cells)}/{s.n_cells} cells, tip error {err:.2e}, "
-              f"ROM {tr.seconds:.2f} s")
+        say(f"    ECSW tol {tol:g}: {len(s.cells)}/{s.n_cells} cells, tip error {err:.2e}, "
+            f"ROM {tr.seconds:.2f} s")
     return rows
 
 
@@ -341,12 +358,15 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="6 cells, SVK only, r in {4, 6}, one test amplitude")
+    parser.add_argument("--smoke", action="store_true",
+                        help="the test suite's size: quick on 3 cells, training to 0.5 s, the "
+                             "unseen amplitude to 0.6 s, r = 4, long runs 1x")
     parser.add_argument("--out", default="results/svk_cantilever")
     parser.add_argument("--cells", default=None,
                         help="Q2 cells 'nx,ny,nz' (default 10,1,1; quick 6,1,1) - e.g. 20,2,2 to "
                              "give ECSW cells to drop (80 cells, 3075 dofs: ~10x the FOM time)")
     args = parser.parse_args(argv)
-    cfg = dict(QUICK if args.quick else FULL)
+    cfg = dict(SMOKE if args.smoke else QUICK if args.quick else FULL)
     if args.cells is not None:
         try:
             cells = tuple(int(c) for c in args.cells.split(","))
@@ -355,16 +375,17 @@ def main(argv=None):
         if len(cells) != 3 or min(cells) < 1:
             parser.error(f"--cells must be three positive integers 'nx,ny,nz', got {args.cells!r}")
         cfg["cells"] = cells
-    if MPI.COMM_WORLD.size > 1:
-        raise SystemExit("this demo runs on one rank")
+    root = harness.is_root()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if root:
+        out.mkdir(parents=True, exist_ok=True)
     dt = scene.DT
     t_start = time.perf_counter()
     jit_seconds = compiled.warm_up_polynomial()  # compile / load the ROM loop before any timer
     metrics = {"scene": "svk_cantilever", "dt": dt, "t_train": cfg["t_train"], "t_end": cfg["t_end"],
                "train_amplitudes": cfg["train_amps"], "test_amplitudes": cfg["test_amps"],
-               "r_values": cfg["r_values"], "quick": bool(args.quick), "materials": {},
+               "r_values": cfg["r_values"], "quick": bool(args.quick), "smoke": bool(args.smoke),
+               "materials": {},
                "jit_compile_seconds": jit_seconds, "ecsw_tol": cfg["ecsw_tol"]}
 
     # --- the linear FOM at the largest amplitude: what the nonlinearity changes ----------------
@@ -375,11 +396,13 @@ def main(argv=None):
                                  output_matrix=lin.output_matrix, state_map=lin.state_map,
                                  progress=False, record_velocity=False, energy_every=0,
                                  state_until=2 * dt)
-    y_linear = lin_snaps.Y
+    y_linear = MPI.COMM_WORLD.bcast(lin_snaps.Y if root else None, root=0)
 
     for material in cfg["materials"]:
-        print(f"[{material}]")
+        say(f"[{material}]")
         cant, runs = fom_runs(cfg, material)
+        if root:  # the FOM outputs every fit is scored against (and tests/fem compare)
+            np.savez(out / f"fom_{material}.npz", **{f"Y_{a:g}": runs[a][0].Y for a in runs})
         M = dense_state_matrix(cant.system.mass_form, cant.V, cant.state_map)
         E_state = output_matrix_in_state(cant.V, cant.output_matrix, cant.state_map)
         b_state = cant.load_vector()
@@ -393,6 +416,10 @@ def main(argv=None):
         for r in cfg["r_values"]:
             basis = basis_full.truncate(r)
             models, fits, galerkin = _fit_models(cant, cfg, basis, runs, b_state, rng)
+            if root:  # the black-box probe data of this basis (the probe fits' only data) and
+                p = models["_probes"]  # the tip output of the basis (y = EV qh)
+                np.savez(out / f"probes_{material}_r{r}.npz", Q=p.Q, Vel=p.Vel, U=p.inputs, A=p.A,
+                         error_estimate=p.error_estimate, EV=E_state @ basis.V)
             r_rows, tip_series, state_series = _test_rows(material, cfg, r, basis, models, fits,
                                                           runs, E_state, fom_seconds)
             rows += r_rows
@@ -404,19 +431,24 @@ def main(argv=None):
             for method in METHODS:
                 fits_out.append({"r": r, "method": method, **fits[method]})
         mm = metrics["materials"].setdefault(material, {})
+        sv = np.concatenate(list(basis_full.singular_values.values()))
         mm.update(n_dofs=int(len(cant.state_map.order)), n_cells=int(np.prod(cfg["cells"])),
+                  pod_singular_values=sv[:20].tolist(),
                   rows=rows, long_runs=long_rows, fits=fits_out, ecsw_sweep=sweep_rows,
                   fom_seconds={str(a): s for a, s in fom_seconds.items()},
                   linear_vs_nonlinear_tip_difference=float(
                       lo.relative_error(lin_nl["y_nonlinear"], lin_nl["y_linear"])))
-        _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long)
+        if root:
+            _figures(out, material, cfg, lin_nl, tip_series, energy_series, rows, dt, n_long)
         mm["render"] = _render(out, material, cfg, cant, runs[a_max][0], basis, state_series, rows)
-        _print_table(material, rows, long_rows, cfg)
+        if root:
+            _print_table(material, rows, long_rows, cfg)
     metrics["linear_fom_seconds"] = lin_info["seconds"]
     metrics.update(report_rows(metrics))
+    metrics["n_ranks"] = MPI.COMM_WORLD.size
     metrics["seconds"] = time.perf_counter() - t_start
     harness.write_metrics(out, metrics)
-    print(f"wrote {out / 'metrics.json'} ({metrics['seconds']:.0f} s)")
+    say(f"wrote {out / 'metrics.json'} ({metrics['seconds']:.0f} s)")
     return metrics
 
 
@@ -497,16 +529,13 @@ def _error_vs_r(path, rows, cfg, a, *, title):
 
 
 def _render(out, material, cfg, cant, snaps, basis, state_series, rows):
-    """Deformed shapes, true scale, side view: FOM | ROMs at the largest unseen amplitude."""
-    import pyvista
-    from dolfinx import plot
-
+    """Deformed shapes, true scale, side view: FOM | ROMs at the largest unseen amplitude.
+    Collective (the ranks' pieces of the mesh are gathered); drawn on rank 0."""
     dt, r = scene.DT, basis.r
     a = max(cfg["test_amps"])
-    topology, cell_types, geometry = plot.vtk_mesh(cant.V)
-    grid = pyvista.UnstructuredGrid(topology, cell_types, geometry)
+    grid = render.grid_on_root(cant.V)  # rank 0: the whole mesh, points = global dof blocks
 
-    def field(state):  # state coordinates -> (points, 3); one rank: points = dof blocks
+    def field(state):  # state coordinates -> (points, 3)
         return cant.state_map.to_dofs(state).reshape(-1, 3)
 
     steps = [int(round(t / dt)) for t in cfg["render_times"]]
@@ -520,8 +549,9 @@ def _render(out, material, cfg, cant, snaps, basis, state_series, rows):
         frames.append({label: field(Q[:, k] if label == "FOM" else Q[:, i])
                        for label, Q in columns.items()})
     path = out / f"deformed_{material}.png"
-    _side_by_side(path, grid, frames, titles=[f"t = {k * dt:.2f} s" for k in steps],
-                  title=f"{material}, a = {a:g} (unseen), true scale")
+    if grid is not None:
+        _side_by_side(path, grid, frames, titles=[f"t = {k * dt:.2f} s" for k in steps],
+                      title=f"{material}, a = {a:g} (unseen), true scale")
     errs = {}
     for label, Q in columns.items():
         if label != "FOM":
@@ -556,4 +586,12 @@ def _print_table(material, rows, long_rows, cfg):
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except BaseException:
+        if MPI.COMM_WORLD.size > 1:  # one rank failing must not leave the others waiting
+            import traceback
+
+            traceback.print_exc()
+            MPI.COMM_WORLD.Abort(1)
+        raise

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fem._dolfinx import MPI, dolfinx, ufl
-from ..fem.state import StateMap, point_output_matrix
+from ..fem.state import StateMap, owned_global_dofs, point_output_matrix
 from ..fem.lagrangian import LagrangianSystem
 from ..errors import InputError
 
@@ -103,15 +103,35 @@ class Cantilever:
     def V(self):
         return self.system.V
 
+    @property
+    def comm(self):
+        return self.V.mesh.comm
+
     def _set_q(self, state: np.ndarray):
+        """system.q = the state (global state coordinates, the same on every rank)."""
         q = self.system.q
-        q.x.array[:] = self.state_map.to_dofs(state)
+        q.x.array[:] = self.state_map.to_local_dofs(self.V, state)
         q.x.scatter_forward()
 
+    def _to_state(self, owned: np.ndarray) -> np.ndarray:
+        """Owned rows (n_owned, ...) of every rank -> state coordinates (n, ...) on every rank
+        (each global dof has one owner: the sum over ranks adds zeros to it, exactly)."""
+        dofs = np.zeros((len(self.state_map.order),) + owned.shape[1:])
+        dofs[owned_global_dofs(self.V)] = owned
+        if self.comm.size > 1:
+            dofs = self.comm.allreduce(dofs)
+        scale = self.state_map.scale.reshape((-1,) + (1,) * (owned.ndim - 1))
+        return dofs[self.state_map.order] / scale
+
+    def _n_owned(self) -> int:
+        return self.V.dofmap.index_map.size_local * self.V.dofmap.index_map_bs
+
     def internal_force(self, states: np.ndarray) -> np.ndarray:
-        """grad U at states (n, k) (state coordinates; one rank), the Dirichlet rows zero."""
+        """grad U at states (n, k) (state coordinates, the same on every rank; collective),
+        the Dirichlet rows zero; on every rank."""
         states = np.atleast_2d(np.asarray(states, dtype=float).T).T
-        out = np.empty_like(states)
+        n_owned = self._n_owned()
+        owned = np.empty((n_owned, states.shape[1]))
         form = dolfinx.fem.form(self.force_form) if not hasattr(self, "_force_c") else self._force_c
         self._force_c = form
         saved = self.system.q.x.array.copy()
@@ -119,13 +139,15 @@ class Cantilever:
             self._set_q(states[:, j])
             b = dolfinx.fem.assemble_vector(form)
             b.scatter_reverse(dolfinx.la.InsertMode.add)
-            out[:, j] = b.array[self.state_map.order] / self.state_map.scale
+            owned[:, j] = b.array[:n_owned]
         self.system.q.x.array[:] = saved
+        out = self._to_state(owned)
         out[self.clamped_rows] = 0.0
         return out
 
     def potential(self, states: np.ndarray) -> np.ndarray:
-        """U at states (n, k) (one rank)."""
+        """U at states (n, k) (state coordinates, the same on every rank; collective); on
+        every rank."""
         states = np.atleast_2d(np.asarray(states, dtype=float).T).T
         form = dolfinx.fem.form(self.energy_form) if not hasattr(self, "_energy_c") else self._energy_c
         self._energy_c = form
@@ -135,28 +157,36 @@ class Cantilever:
             self._set_q(states[:, j])
             out[j] = dolfinx.fem.assemble_scalar(form)
         self.system.q.x.array[:] = saved
-        return out
+        return self.comm.allreduce(out) if self.comm.size > 1 else out
 
     def load_vector(self) -> np.ndarray:
-        """b in state coordinates (the full-order input vector per unit input)."""
+        """b in state coordinates (the full-order input vector per unit input), on every rank
+        (collective)."""
         b = dolfinx.fem.assemble_vector(dolfinx.fem.form(self.load_form))
         b.scatter_reverse(dolfinx.la.InsertMode.add)
-        out = b.array[self.state_map.order] / self.state_map.scale
+        out = self._to_state(b.array[:self._n_owned()])
         out[self.clamped_rows] = 0.0
         return out
 
     @property
     def clamped_rows(self) -> np.ndarray:
+        """State rows of the clamped (Dirichlet) dofs, on every rank (collective on first use)."""
         if not hasattr(self, "_clamped"):
-            bs = self.V.dofmap.index_map_bs
-            blocks = np.concatenate([bc.dof_indices()[0] for bc in self.system.bcs])
+            n_owned = self._n_owned()
+            owned = np.zeros(n_owned, dtype=bool)
+            for bc in self.system.bcs:
+                dofs = bc.dof_indices()[0]  # local, unrolled (blocked space): owned, then ghosts
+                owned[dofs[dofs < n_owned]] = True
             mask = np.zeros(len(self.state_map.order), dtype=bool)
-            mask[blocks] = True  # dof_indices are unrolled (blocked space, serial)
+            mask[owned_global_dofs(self.V)] = owned
+            if self.comm.size > 1:
+                mask = self.comm.allreduce(mask.astype(np.int8)) > 0
             self._clamped = np.flatnonzero(mask[self.state_map.order])
-            del bs
         return self._clamped
 
     def initial_state(self):
+        """Rest: zero configuration and velocity as this rank's local dof arrays (owned +
+        ghosts), the form :func:`dolfinx_lopinf.run` takes."""
         n = len(self.system.q.x.array)
         return np.zeros(n), np.zeros(n)
 

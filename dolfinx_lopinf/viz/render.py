@@ -236,6 +236,37 @@ def speed_vs_error(path, points: dict, *, fom_seconds: float | None = None, titl
     return _finish(fig, ax, path, xlabel="wall time [s]", ylabel="relative test error", title=title)
 
 
+def grid_on_root(V):
+    """The mesh of a Lagrange-type space ``V`` as one pyvista UnstructuredGrid on rank 0
+    (None on the other ranks), its points the global dof blocks of V: point i carries dof
+    block i, so a global dof vector u (e.g. ``state_map.to_dofs(state)``) is drawn as
+    ``u.reshape(-1, bs)`` on any number of ranks. Collective (every rank sends its owned
+    cells, from ``dolfinx.plot.vtk_mesh(V)``, and the coordinates of its local dof blocks;
+    shared blocks are one point). On one rank: the grid of ``vtk_mesh(V)`` as it is."""
+    from dolfinx import plot
+
+    pv = _pyvista()
+    comm = V.mesh.comm
+    topology, cell_types, geometry = plot.vtk_mesh(V)
+    if comm.size == 1:
+        return pv.UnstructuredGrid(topology, cell_types, geometry)
+    imap = V.dofmap.index_map
+    glob = imap.local_to_global(np.arange(imap.size_local + imap.num_ghosts, dtype=np.int32))
+    # VTK's flat topology: per cell its number of points, then the points (local blocks); a
+    # space's cells all have the same number (vtk_mesh of a FunctionSpace)
+    n_cells = len(cell_types)
+    topo = np.asarray(topology, dtype=np.int64).reshape(n_cells, -1 if n_cells else 1).copy()
+    topo[:, 1:] = glob[topo[:, 1:]]
+    pieces = comm.gather((topo.ravel(), np.asarray(cell_types), glob, np.asarray(geometry)), root=0)
+    if comm.rank != 0:
+        return None
+    points = np.zeros((imap.size_global, 3))
+    for _, _, g, x in pieces:
+        points[g] = x
+    return pv.UnstructuredGrid(np.concatenate([p[0] for p in pieces]),
+                               np.concatenate([p[1] for p in pieces]), points)
+
+
 #: the fishtail's view: from above, lateral bending in the image plane
 TOP_VIEW = [(0.0, 0.45, 0.12), (0.0, 0.0, 0.12), (1, 0, 0)]
 
