@@ -72,9 +72,7 @@ def _blocks(x, full, r, b):
 
 
 def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
-    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel); a diagonal
-    block (ro == co) symmetrised, an off-diagonal one mirrored into H[co + (ab), ro + (ij)]
-    (the Schur matrix is symmetric to rounding: fractional.schur_terms)."""
+    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel)."""
     r = Ps.shape[1]
     nv = iu0.shape[0]
     Pm = np.empty((r * r, nt))
@@ -94,16 +92,6 @@ def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
             cq = 0.5 if a == bb else 1.0
             H[ro + p, co + q] = cp * cq * (Phi[j * r + a, bb * r + i] + Phi[j * r + bb, a * r + i]
                                            + Phi[i * r + a, bb * r + j] + Phi[i * r + bb, a * r + j])
-    if ro == co:
-        for p in range(nv):
-            for q in range(p + 1, nv):
-                v = 0.5 * (H[ro + p, co + q] + H[ro + q, co + p])
-                H[ro + p, co + q] = v
-                H[ro + q, co + p] = v
-    else:
-        for p in range(nv):
-            for q in range(nv):
-                H[co + q, ro + p] = H[ro + p, co + q]
 
 
 def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
@@ -126,7 +114,7 @@ def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
     Qs = np.empty((9, r, r))
     coefs = np.empty(9)
     for k in range(b):
-        for l in range(k, b):  # the pairs below: transposes (_kernel_block mirrors them)
+        for l in range(b):  # every pair: fractional.schur_terms
             ks, ls = slice(k * r, (k + 1) * r), slice(l * r, (l + 1) * r)
             Ps[0], Qs[0], coefs[0] = Mi, GY[ls, ks], 1.0
             Ps[1], Qs[1], coefs[1] = Om, GmY[ls, ks], 1.0 / s
@@ -308,7 +296,8 @@ def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f
             return
         Xi[k] = np.dot(SX[k].T, SX[k])
     H = np.empty((n, n))
-    _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H)  # symmetric
+    _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H)
+    H = 0.5 * (H + H.T)
     d0 = 1.0 / np.sqrt(np.diag(H))
     ad = a * d0
     gam = 1.0 / np.dot(ad, ad)
