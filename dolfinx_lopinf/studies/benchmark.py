@@ -4,6 +4,7 @@
     python -m dolfinx_lopinf.studies.benchmark --table      # the certified-fit inference table
     python -m dolfinx_lopinf.studies.benchmark --table --r 4,12 --sets mixed   # a selection
     python -m dolfinx_lopinf.studies.benchmark --table --mass --poly   # all three tables
+    python -m dolfinx_lopinf.studies.benchmark --no-mh --fit a.npz,b.npz   # lo.fit end to end
 
 For r in {2, 4, ..., 20} and K in {3000, 6000, 10000} snapshots it times
 
@@ -233,6 +234,10 @@ def main(argv=None):
                         help="also the polynomial sos table (r in 4, 6, 8: ours vs Clarabel)")
     parser.add_argument("--poly-r", default="4,6,8")
     parser.add_argument("--no-mh", action="store_true", help="skip the Mh = I table")
+    parser.add_argument("--fit", default=None, metavar="NPZ[,NPZ...]",
+                        help="time lo.fit with its defaults end to end on recorded snapshots "
+                             "(lo.Snapshots.save files, e.g. the loops study's)")
+    parser.add_argument("--fit-r", default="4,8,12,20")
     args = parser.parse_args(argv)
     r_values = [4, 20] if args.quick else R_VALUES
     k_values = [3000, 10000] if args.quick else K_VALUES
@@ -297,7 +302,58 @@ def _mass_and_poly(args) -> dict:
             row = bm.poly_row(r)
             bm.print_poly_row(row)
             out["poly_rows"].append(row)
+    if args.fit:
+        out["fit_rows"] = fit_table(args.fit.split(","), [int(v) for v in args.fit_r.split(",")],
+                                    repeats=max(1, min(args.repeats, 3)))
     return out
+
+
+def fit_table(paths, r_values, repeats: int = 3) -> list[dict]:
+    """``lo.fit(snapshots, r)`` with every default (scheme identification, mass and damping
+    chosen on a held-back end) on recorded snapshots: the best wall time of ``repeats`` after
+    one warm-up fit (kernels compiled or loaded before), what it chose, the certificate, and
+    how many warnings the user saw. A reduced dimension the data cannot carry is a row with
+    its refusal."""
+    from ..core import compiled
+    from ..core.lsq import _compiled, _fractional_compiled
+    from ..core.fit import fit
+    from ..core.snapshots import Snapshots
+
+    compiled.warm_up()
+    _compiled.warm_up()
+    _fractional_compiled.warm_up()
+    print(f"\nlo.fit defaults end to end (best of {repeats}, after one warm-up fit)\n"
+          f"{'snapshots':>28} {'r':>3} {'wall s':>7} {'mass':>8} {'gap':>9} cert warn scheme")
+    rows = []
+    for path in paths:
+        S = Snapshots.load(path)
+        name = f"{Path(path).stem}"
+        for r in r_values:
+            row = {"snapshots": name, "n_states": int(S.Q.shape[0]), "n_samples": int(S.Q.shape[1]), "r": r}
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    fit(S, r)
+            except Exception as exc:  # noqa: BLE001 - a refusal is the row's result
+                row["refused"] = str(exc)[:160]
+                print(f"{name[:28]:>28} {r:>3} refused: {row['refused'][:70]}")
+                rows.append(row)
+                continue
+            best = float("inf")
+            for _ in range(repeats):
+                with warnings.catch_warnings(record=True) as seen:
+                    warnings.simplefilter("always")
+                    t0 = time.perf_counter()
+                    model = fit(S, r)
+                    best = min(best, time.perf_counter() - t0)
+            rep, cert = model.report, model.report["certificate"]
+            row.update(seconds=best, mass=rep["mass"], damping=rep["damping"], scheme=rep["scheme"],
+                       duality_gap=cert.get("duality_gap"), certified=bool(cert.get("certified")),
+                       warnings=len(seen))
+            print(f"{name[:28]:>28} {r:>3} {best:7.3f} {rep['mass']:>8} {row['duality_gap']:9.1e} "
+                  f"{'yes' if row['certified'] else 'NO':>4} {len(seen):>4} {rep['scheme'][:40]}")
+            rows.append(row)
+    return rows
 
 
 if __name__ == "__main__":

@@ -52,3 +52,27 @@ def test_benchmark_mass_and_poly_tables(tmp_path, capsys):
         <= 1e-2 * poly["cvxpy"]["relative_residual"]
     printed = capsys.readouterr().out
     assert "learned mass" in printed and "polynomial sos fit" in printed
+
+
+def test_benchmark_fit_table_on_recorded_snapshots(tmp_path, capsys):
+    """--fit: lo.fit with its defaults on saved snapshots, one row per r - the choice, the
+    certificate, the warnings counted; a reduced dimension the data cannot carry is a row
+    with its refusal, not a crash."""
+    import numpy as np
+
+    import dolfinx_lopinf as lo
+
+    t = np.arange(400) * 0.01
+    Q = np.vstack([np.cos(t), np.sin(1.7 * t), np.cos(2.3 * t + 0.4)])
+    Q = np.vstack([Q, 0.5 * Q[:1] + 0.2 * Q[1:2]])  # 4 states of rank 3
+    path = tmp_path / "loop.npz"
+    lo.Snapshots(t, Q).save(path)
+    out = tmp_path / "bench.json"
+    benchmark.main(["--no-mh", "--fit", str(path), "--fit-r", "2,6", "--repeats", "1", "--out", str(out)])
+    rows = json.loads(out.read_text())["fit_rows"]
+    assert [row["r"] for row in rows] == [2, 6]
+    ok, refused = rows
+    assert ok["seconds"] > 0 and ok["mass"] in ("identity", "learned") and isinstance(ok["certified"], bool)
+    assert ok["n_states"] == 4 and ok["n_samples"] == 400 and "refused" not in ok
+    assert "refused" in refused and "numerical rank" in refused["refused"]
+    assert "lo.fit defaults end to end" in capsys.readouterr().out
