@@ -586,12 +586,4 @@ def _print_table(material, rows, long_rows, cfg):
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except BaseException:
-        if MPI.COMM_WORLD.size > 1:  # one rank failing must not leave the others waiting
-            import traceback
-
-            traceback.print_exc()
-            MPI.COMM_WORLD.Abort(1)
-        raise
+    harness.run_on_every_rank(main)
