@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
+from .. import compiled as _jit
 from .fractional import kernel
 from .linalg import from_eig, sym
 from .problem import Certificate
@@ -60,23 +61,17 @@ def _kernel_loop(P, Q, iu0, iu1, H):
 
 _KERNEL_SIGNATURES = {"_kernel_loop": "void(float64[:, ::1], float64[:, ::1], int64[::1], int64[::1], "
                                       "float64[:, ::1])"}
-_KERNELS = None
+_KERNELS = _jit.KernelSet(globals(), _KERNEL_SIGNATURES, unavailable="the compiled psd kernel is unavailable")
 
 
 def _kernel(P, Q, n):
     """K(P, Q) for the Newton matrix: compiled when numba is there (the numpy kernel's
     Kronecker gathers are most of an iteration's time from n ~ 40 on), else numpy."""
-    global _KERNELS
-    from .. import compiled as _jit
-
     if _jit.resolve_backend("auto") == "numba":
-        if _KERNELS is None:
-            _KERNELS = _jit.KernelSet(globals(), _KERNEL_SIGNATURES,
-                                      unavailable="the compiled psd kernel is unavailable")
         i, j, _, _ = _vech(n)
         H = np.empty((len(i), len(i)))
         _KERNELS.kernels()["_kernel_loop"](np.ascontiguousarray(P), np.ascontiguousarray(Q),
-                                            i.astype(np.int64), j.astype(np.int64), H)
+                                            i.astype(np.int64), j.astype(np.int64), H)  # writable
         return H
     return kernel([(1.0, P, Q)], n)
 
