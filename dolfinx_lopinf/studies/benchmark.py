@@ -318,6 +318,7 @@ def fit_table(paths, r_values, repeats: int = 3) -> list[dict]:
     from ..core.lsq import _compiled, _fractional_compiled
     from ..core.fit import fit
     from ..core.snapshots import Snapshots
+    from ..errors import InputError
 
     compiled.warm_up()
     _compiled.warm_up()
@@ -327,14 +328,14 @@ def fit_table(paths, r_values, repeats: int = 3) -> list[dict]:
     rows = []
     for path in paths:
         S = Snapshots.load(path)
-        name = f"{Path(path).stem}"
+        name = Path(path).stem
         for r in r_values:
             row = {"snapshots": name, "n_states": int(S.Q.shape[0]), "n_samples": int(S.Q.shape[1]), "r": r}
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     fit(S, r)
-            except Exception as exc:  # noqa: BLE001 - a refusal is the row's result
+            except InputError as exc:  # lo.fit's refusal (e.g. r above the data's rank) is the row
                 row["refused"] = str(exc)[:160]
                 print(f"{name[:28]:>28} {r:>3} refused: {row['refused'][:70]}")
                 rows.append(row)
