@@ -110,7 +110,8 @@ def main(argv=None):
     spod = StreamingPOD(V, n_train, weight=nm.M if args.basis == "mass" else None,
                         directory=args.scratch)
     for name in inputs:
-        steps = set(early + gif_steps) if name == render_input else ()
+        # the fields of the renders (one rank only draws them: on N ranks none are kept)
+        steps = set(early + gif_steps) if name == render_input and comm.size == 1 else ()
         Y, E, seconds, fields = run_fom(tail, nm, scene.INPUTS[name], t_end, comm,
                                         spod=spod if name == args.train else None,
                                         t_keep=t_train, snap_steps=steps)
