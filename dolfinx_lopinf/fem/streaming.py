@@ -20,7 +20,7 @@ Each rank appends its owned dofs q_k and w_k = W q_k (one mat-vec) to two on-dis
 page cache and the disk, never into the process's memory (a writable memory map of the
 files would count every written page in the process's resident memory - 2.3 GB per rank
 over the 795k-dof fishtail's training run). G is summed over column chunks of the stored
-rows (each read through a read-only map that is dropped after the chunk) and all-reduced; V
+rows (read back row by row into one reused buffer, no memory map either) and all-reduced; V
 is formed chunk by chunk too. A chunk holds ``chunk`` columns of all K rows; by default as
 many as fit :data:`CHUNK_BYTES` per array. Peak memory per rank: O(K^2 + chunk K + n_local r)
 for any number of snapshots; disk: 2 n K doubles (deleted by :meth:`close`). Qh and lam are
@@ -121,7 +121,7 @@ class StreamingPOD:
         if self.weight is not None:
             self._x.array[:] = q
             self.weight.mult(self._x, self._y)
-            self._write("wq", self._y.array[: self.n_owned])
+            self._write("wq", self._y.array)
         self.count += 1
 
     def _write(self, key, row) -> None:
@@ -133,30 +133,31 @@ class StreamingPOD:
         """The stored rows' columns ``cols`` (count x width), read row by row into the front
         of ``buffer`` (count x chunk, reused across chunks; no memory map: the file's pages
         stay out of the process's resident memory)."""
-        _, f, offset = self._files[key]
+        path, f, offset = self._files[key]
         f.flush()
-        out = buffer[:, : cols.stop - cols.start]
-        row_bytes, width = self.n_owned * 8, out.shape[1] * 8
+        out = buffer[:, : cols.stop - cols.start]  # each row a contiguous prefix
+        width = out.shape[1] * 8
         for k in range(self.count):
-            view = memoryview(buffer[k, : out.shape[1]]).cast("B")
-            start = offset + k * row_bytes + cols.start * 8
-            got = os.preadv(f.fileno(), [view], start)
+            start = offset + (k * self.n_owned + cols.start) * 8
+            got = os.preadv(f.fileno(), [memoryview(out[k]).cast("B")], start)
             if got != width:
                 raise OSError(f"StreamingPOD: short read of snapshot {k} ({got} of {width} bytes) "
-                              f"from {self._files[key][0]}")
+                              f"from {path}")
         return out
 
     def _chunks(self):
-        for start in range(0, self.n_owned, self.chunk):
-            yield slice(start, min(start + self.chunk, self.n_owned))
+        """(a reading buffer of count x chunk, the column slices of the chunks)."""
+        buffer = np.empty((self.count, min(self.chunk, self.n_owned)))
+        return buffer, [slice(start, min(start + self.chunk, self.n_owned))
+                        for start in range(0, self.n_owned, self.chunk)]
 
     def gram(self) -> np.ndarray:
         """G = Q^T W Q over the appended snapshots (collective; identical on every rank)."""
         K = self.count
         G = np.zeros((K, K))
-        bq = np.empty((K, min(self.chunk, self.n_owned)))
+        bq, chunks = self._chunks()
         bw = np.empty_like(bq) if self.weight is not None else None
-        for cols in self._chunks():
+        for cols in chunks:
             Q = self._columns("q", cols, bq)
             W = self._columns("wq", cols, bw) if self.weight is not None else Q
             G += Q @ W.T
@@ -186,8 +187,8 @@ class StreamingPOD:
                              f"{rank} (singular values {sv[: r + 1]}); lower r or record richer data")
         coef = Psi[:, :r] / np.sqrt(lam[:r])  # V = Q coef
         basis = np.empty((self.n_owned, r))
-        bq = np.empty((self.count, min(self.chunk, self.n_owned)))
-        for cols in self._chunks():
+        bq, chunks = self._chunks()
+        for cols in chunks:
             basis[cols] = self._columns("q", cols, bq).T @ coef
         Qh = np.sqrt(lam[:r])[:, None] * Psi[:, :r].T
         return basis, Qh, lam
@@ -223,7 +224,7 @@ class StreamingPOD:
 
     def close(self) -> None:
         """Delete the on-disk arrays."""
-        for _, f, _ in getattr(self, "_files", {}).values():
+        for _, f, _ in self._files.values():
             f.close()
         self._files = {}
         shutil.rmtree(self._dir, ignore_errors=True)
