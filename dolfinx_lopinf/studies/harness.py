@@ -78,23 +78,6 @@ def parse(doc: str, argv=None, *, out: str, quick: str = "short runs", extra=Non
     return args
 
 
-def run_on_every_rank(main) -> None:
-    """A demo's ``if __name__ == "__main__"``: ``main()``, and on several ranks an exception on
-    one of them prints its traceback and aborts the job - the other ranks would otherwise wait
-    in their next collective call forever."""
-    from ..fem._dolfinx import MPI
-
-    try:
-        main()
-    except BaseException:
-        if MPI.COMM_WORLD.size > 1:
-            import traceback
-
-            traceback.print_exc()
-            MPI.COMM_WORLD.Abort(1)
-        raise
-
-
 def is_root(comm=None) -> bool:
     """True on the rank that writes files and prints (rank 0)."""
     if comm is None:
