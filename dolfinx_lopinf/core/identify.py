@@ -13,7 +13,9 @@ scheme that made the data, and is larger elsewhere. :func:`identify` evaluates r
 standard members (Newmark's average / linear acceleration, Fox-Goodwin, central
 differences, the midpoint rule, HHT-alpha and generalised-alpha over their usual
 parameters), then refines the best member's family by Gauss-Newton on the residual vector
-(``scipy.optimize.least_squares``, bounded to the stable range).
+(``scipy.optimize.least_squares``, bounded to the stable range), with the Jacobian of
+variable projection (the free operators eliminated; :meth:`Residual.projected`): one
+evaluation of the relation gives the residual and its derivative in every parameter.
 
 What the data can tell. A free response pins the family but not always every parameter:
 Newmark's three-point relation spans every three-point recurrence, so beta and gamma are
@@ -47,6 +49,9 @@ SHORTLIST = 30.0
 #: and errors below PREDICTION_FLOOR are ties at that floor
 MARGIN = 3.0
 PREDICTION_FLOOR = 1e-9
+#: a held-back prediction whose relative error reaches this (predicting zero does as well) has
+#: blown up: it counts as no prediction (inf), whatever its size (1e14 or 1e15 is rounding)
+PREDICTION_USELESS = 1.0
 #: a refinement (parameters off the usual grid) replaces the standard member the prediction
 #: keeps only when it predicts this much better. Loads that vary linearly between jumps do
 #: not show where a scheme samples them (at t_n+1 or between steps): on such data a
@@ -122,8 +127,10 @@ class _Compressed:
         self.R = _qr_r(stacked)
         self.cols = cols
 
-    def pieces(self, scheme):
-        """(Yt, Ct, Kt, Ft) of ``scheme``'s relation, compressed."""
+    def weights(self, scheme) -> np.ndarray:
+        """The relation's coefficients as one vector: cm, cc, ck on the four shifted copies,
+        then the load weights on the shifted input copies (linear interpolation of the loads'
+        positions on their grid). The compressed relation is linear in them (:meth:`combine`)."""
         if isinstance(scheme, S.Midpoint):
             # padded in front, like Newmark's (its four-point form leads with zeros): the
             # two relations are the same for linear data, and on the same columns their free
@@ -135,25 +142,36 @@ class _Compressed:
             cm, cc, ck, cu, tau = S.GeneralizedAlpha.coefficients(scheme, self.dt)
         else:
             raise ValueError("no compressed form")
-        r = self.r
-        R = self.R if self.R_bent is None else self.R_bent  # the common columns (above)
-
-        def comb(c):
-            return sum(w * R[:, j * r:(j + 1) * r] for j, w in enumerate(c) if w != 0.0)
-
-        Ft = None
+        loads = np.zeros(len(self.shifts))
         if self.m:
-            weights = np.zeros(len(self.shifts))
             for j, w in enumerate(cu):
                 p = j + tau - self.c
                 i = int(np.floor(p + 1e-9))
                 frac = p - i if p - i > 1e-9 else 0.0
-                weights[i - self.shifts[0]] += w * (1 - frac)
+                loads[i - self.shifts[0]] += w * (1 - frac)
                 if frac:
-                    weights[i + 1 - self.shifts[0]] += w * frac
-            base, m = 4 * r, self.m
-            Ft = sum(w * R[:, base + q * m:base + (q + 1) * m] for q, w in enumerate(weights) if w)
-        return comb(cm), comb(cc), comb(ck), Ft
+                    loads[i + 1 - self.shifts[0]] += w * frac
+        return np.concatenate([cm, cc, ck, loads])
+
+    def combine(self, w):
+        """(Yt, Ct, Kt, Ft) of the relation with coefficient vector ``w`` (:meth:`weights`;
+        a stack (p, len) of them gives a stack of each)."""
+        r = self.r
+        R = self.R if self.R_bent is None else self.R_bent  # the common columns (above)
+        w = np.asarray(w)
+        # the three combinations of the four shifted copies at once: (..., 3, rows, r)
+        YCK = np.einsum("ijk,...lj->...lik", R[:, :4 * r].reshape(len(R), 4, r),
+                        w[..., :12].reshape(w.shape[:-1] + (3, 4)))
+        Ft = None
+        if self.m:
+            nw, m = len(self.shifts), self.m
+            Ft = np.einsum("iqk,...q->...ik", R[:, 4 * r:4 * r + nw * m].reshape(len(R), nw, m),
+                           w[..., 12:])
+        return YCK[..., 0, :, :], YCK[..., 1, :, :], YCK[..., 2, :, :], Ft
+
+    def pieces(self, scheme):
+        """(Yt, Ct, Kt, Ft) of ``scheme``'s relation, compressed."""
+        return self.combine(self.weights(scheme))
 
 
 def _qr_r(stacked):
@@ -218,13 +236,24 @@ class Residual:
         res = Y - Qd @ (Qd.T @ Y)
         return res.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
 
+    def compressed(self, scheme) -> bool:
+        """Whether ``scheme``'s relation is evaluated on the compressed data."""
+        return self._compressed is not None and isinstance(scheme, (S.GeneralizedAlpha, S.Midpoint))
+
+    def _combined(self, weights):
+        """(Y, D) of the compressed relation with coefficient vectors ``weights`` (one per
+        trajectory, :meth:`_Compressed.weights`)."""
+        parts = [c.combine(w) for c, w in zip(self._compressed, weights)]
+        Y = np.concatenate([p[0] for p in parts], axis=-2)
+        D = np.concatenate([np.concatenate([p[i] for p in parts], axis=-2) for i in (1, 2)]
+                           + ([np.concatenate([p[3] for p in parts], axis=-2)] if self.forced else []),
+                           axis=-1)
+        return Y, D
+
     def _system(self, scheme):
         """(Y, D): the free least squares min ||Y - D Z||, Z = [-C^T; -K^T; B^T]."""
-        if self._compressed is not None and isinstance(scheme, (S.GeneralizedAlpha, S.Midpoint)):
-            parts = [c.pieces(scheme) for c in self._compressed]
-            Y = np.vstack([p[0] for p in parts])
-            D = np.hstack([np.vstack([p[i] for p in parts]) for i in (1, 2)]
-                          + ([np.vstack([p[3] for p in parts])] if self.forced else []))
+        if self.compressed(scheme):
+            Y, D = self._combined([c.weights(scheme) for c in self._compressed])
         else:
             Qk, Qc, Qm, Uf = self.arrays(scheme)
             Y = Qm.T
@@ -244,14 +273,77 @@ class Residual:
     def __call__(self, scheme) -> float:
         return float(np.linalg.norm(self.vector(scheme)))
 
+    def projected(self, build, lo, hi):
+        """(fun, jac) of x -> :meth:`vector` (build(x)) for ``scipy.optimize.least_squares``
+        on compressed data, with the Jacobian of variable projection (Golub and Pereyra):
+        for E = P_D^perp Y (Z = D^+ Y the free operators) and a parameter x_i,
+
+            dE = P_D^perp (dY - dD Z) - (D^+)^T dD^T E,
+
+        where dY, dD are the relation at the coefficients' derivative (the relation is
+        linear in its coefficients; those are differentiated by a step of 1e-7 in x_i,
+        inside [lo, hi]). One evaluation gives the residual and its Jacobian."""
+        cache = {}
+
+        def weights(x):
+            return [c.weights(build(x)) for c in self._compressed]
+
+        def evaluate(x):
+            key = np.asarray(x, dtype=float).tobytes()
+            if key not in cache:
+                cache.clear()
+                self.evaluations += 1
+                w = weights(x)
+                Y, D = self._combined(w)
+                scale = np.linalg.norm(D, axis=0)
+                scale[scale == 0] = 1.0
+                Qd, Rd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)
+                E = Y - Qd @ (Qd.T @ Y)
+                cache[key] = (x, w, Y, scale, Qd, Rd, E)
+            return cache[key]
+
+        def fun(x):
+            _, _, Y, _, _, _, E = evaluate(x)
+            return E.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
+
+        def jac(x):
+            x, w, Y, scale, Qd, Rd, E = evaluate(x)
+            ny = max(np.linalg.norm(Y), np.finfo(float).tiny)
+            Zs = scipy.linalg.solve_triangular(Rd, Qd.T @ Y, check_finite=False)
+            dw = [[] for _ in w]  # per trajectory: the coefficients' derivative in each x_i
+            for i in range(len(x)):
+                h = 1e-7 * max(1.0, abs(x[i]))
+                if x[i] + h > hi[i]:
+                    h = -h
+                xi = np.array(x, dtype=float)
+                xi[i] += h
+                for d, a, b in zip(dw, weights(xi), w):
+                    d.append((a - b) / h)
+            dY, dD = self._combined([np.array(d) for d in dw])  # (p, rows, r), (p, rows, nd)
+            dDs = dD / scale
+            G = dY - dDs @ Zs
+            T = scipy.linalg.solve_triangular(Rd, (dDs.transpose(0, 2, 1) @ E).transpose(1, 0, 2)
+                                              .reshape(Rd.shape[0], -1), trans="T",
+                                              check_finite=False)
+            dE = G - Qd @ (Qd.T @ G) - (Qd @ T).reshape(len(Qd), len(x), -1).transpose(1, 0, 2)
+            J = dE.reshape(len(x), -1).T / ny
+            J -= np.outer(E.ravel(), np.einsum("ij,pij->p", Y, dY) / ny**3)
+            return J
+
+        return fun, jac
+
 
 def _fit(residual: Residual, build, x0, lo, hi):
-    """Gauss-Newton (bounded least squares, central-difference Jacobian) on rho over the
-    parameters x of ``build(x)``; (scheme, rho) or None."""
+    """Gauss-Newton (bounded least squares) on rho over the parameters x of ``build(x)``:
+    the variable-projection Jacobian on compressed data, forward differences otherwise;
+    (scheme, rho, sensitivity) or None."""
     x0 = np.clip(np.asarray(x0, dtype=float), np.add(lo, 1e-9), np.subtract(hi, 1e-9))
     try:
-        sol = scipy.optimize.least_squares(lambda x: residual.vector(build(x)), x0,
-                                           bounds=(lo, hi), jac="3-point", diff_step=1e-6,
+        if residual.compressed(build(x0)):
+            fun, jac = residual.projected(build, lo, hi)
+        else:
+            fun, jac = (lambda x: residual.vector(build(x))), "2-point"
+        sol = scipy.optimize.least_squares(fun, x0, bounds=(lo, hi), jac=jac, diff_step=1e-7,
                                            xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=MAX_ITERATIONS)
         best = build(sol.x)
         sv = np.linalg.svd(sol.jac, compute_uv=False) if sol.jac.size else np.ones(1)
@@ -330,7 +422,7 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
     Returns:
         ``(scheme, report)``; report: ``residuals`` (spec -> rho of every member),
         ``refined`` (spec -> rho), ``predictions`` (spec -> held-back error), ``chosen``,
-        ``why``, ``evaluations``.
+        ``why``, ``evaluations``, ``loads`` (:func:`_load_kind`).
     """
     residual = Residual(pieces)
     members = standard_members() if members is None else list(members)
@@ -371,7 +463,7 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
         else:
             why += (f"; it also predicts the held-back samples best ({e_res:.3g} with free "
                     "operators)" if by_prediction is not None else "")
-    report.update(chosen=chosen.spec, why=why, evaluations=residual.evaluations,
+    report.update(chosen=chosen.spec, why=why, evaluations=residual.evaluations, loads=loads,
                   residual=residual(chosen))
     return chosen, report
 
@@ -434,6 +526,7 @@ def _signature(scheme, loads: str):
     return span, load
 
 
+@functools.lru_cache(maxsize=65536)
 def _equivalent(a, b, loads: str) -> bool:
     """True when the data cannot tell relations a and b apart (:func:`_signature`)."""
     if a == b:
@@ -493,7 +586,8 @@ def _predictions(pieces, members, rho, best_rho, refined, holdout):
         try:
             ops = fitted.free_operators(cand)
             with np.errstate(all="ignore"):
-                out[cand] = max(prediction_error(ops, S.rom_scheme(cand), h, dt) for h in held)
+                e = max(prediction_error(ops, S.rom_scheme(cand), h, dt) for h in held)
+            out[cand] = e if e < PREDICTION_USELESS else float("inf")
         except (ValueError, np.linalg.LinAlgError):
             out[cand] = float("inf")
     return out if any(np.isfinite(list(out.values()))) else {}
