@@ -151,16 +151,19 @@ def test_auto_keeps_the_loops_own_scheme_where_closure_favours_a_dissipative_one
     load - linear between bends, so the data do not show where the loop samples it - the
     relation residual in the identification's 24 coordinates favours generalised-alpha
     (rho_inf 0.9, refined towards alpha_m = alpha_f = 1/2) over Newmark by 4x through the
-    truncated modes. The unseen smooth load shows the cost: 4.3e-4 with that scheme, 4e-6 with
-    the loop's own. lo.fit keeps the most standard member the residual cannot rule out as a
-    candidate, and the held-back comparison keeps it."""
+    truncated modes, and at r = 12-20 that scheme also predicts the held-back end 2-5x better.
+    The unseen smooth load shows the cost: 4.3e-4 with it, 4e-6 (r = 8) to 3e-7 (r = 16) with
+    the loop's own. lo.fit keeps the most standard member the residual cannot rule out unless
+    another relation predicts 10x better."""
     d = np.load(Path(__file__).with_name("data") / "own_loop_newmark_pod64.npz")
     train = lo.Snapshots(d["train_times"], d["train_Q"], U=d["train_U"])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = lo.fit(train, 8)
-    assert model.scheme == "newmark", model.report["identification"]["why"]
-    assert model.report["identification"]["conservative_member"] == "newmark(beta=0.25, gamma=0.5)"
-    tr = model.predict(n_steps=len(d["test_times"]) - 1, inputs=lambda t: np.array([_shake(t)]))
-    err = np.linalg.norm(model.reconstruct(tr.Qh) - d["test_Q"]) / np.linalg.norm(d["test_Q"])
-    assert err < 2e-5, err  # 4.0e-6 measured; the dissipative scheme's 4.3e-4
+    # measured: 4.0e-6 (r = 8) and 2.9e-7 (r = 16); the dissipative scheme's 4.3e-4 at both
+    for r, bound in ((8, 2e-5), (16, 3e-6)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = lo.fit(train, r)
+        assert model.scheme == "newmark", (r, model.report["why"])
+        assert model.report["identification"]["conservative_member"] == "newmark(beta=0.25, gamma=0.5)"
+        tr = model.predict(n_steps=len(d["test_times"]) - 1, inputs=lambda t: np.array([_shake(t)]))
+        err = np.linalg.norm(model.reconstruct(tr.Qh) - d["test_Q"]) / np.linalg.norm(d["test_Q"])
+        assert err < bound, (r, err)
