@@ -11,7 +11,11 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
 * ``"direct"``: factor A once (MUMPS Cholesky LDL^T; PETSc's own on one rank without MUMPS);
   every step is one forward and one backward substitution through the factor. Per step this
   reads the factor twice - its size, not n, sets the cost; with nested dissection in 3D it
-  grows like n^{4/3} (plus the dense top separator).
+  grows like n^{4/3} (plus the dense top separator). MUMPS's block low-rank variant
+  (``petsc_options={"mat_mumps_icntl_35": 2, "mat_mumps_cntl_7": eps}``) factors faster, but
+  its approximate factor used as the step's solve shifts the output and, coarse enough, makes
+  the time loop unstable; as CG's preconditioner it cost more per step than the exact factor
+  on the fishtail (measured in the changelog).
 * iterative (``"cg"``, ``"cg+gamg"``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``): a
   Krylov method with a preconditioner of O(n) cost per iteration, **warm-started** from the
   caller's guess (the integrators pass the acceleration, or increment, of the displacement
