@@ -375,6 +375,28 @@ def test_a_cold_cache_fits_with_numpy_and_builds_the_kernels_aside(monkeypatch):
     assert fractional.MassInteriorPoint().solve(p)[3].details["backend"] == "numba"
 
 
+def test_a_background_build_running_at_exit_is_waited_for():
+    """A program that ends while the background build runs waits for it, says so on stderr
+    and exits normally (a daemon thread left inside LLVM at shutdown can abort the process).
+    The build is replaced by a 2 s sleep in a fresh process."""
+    import subprocess
+    import sys
+
+    from dolfinx_lopinf.core import compiled
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    code = ("import time\n"
+            "import dolfinx_lopinf.core.lsq._fractional_compiled as fc\n"
+            "fc._build_quietly = lambda: (time.sleep(2), print('built', flush=True))\n"
+            "fc.compile_in_background()\n"
+            "print('work done', flush=True)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["work", "done", "built"], run.stdout
+    assert "finishing the one-time build" in run.stderr
+
+
 def test_ready_reads_the_cache_of_this_source():
     """ready() is True once the kernels are built (here or in numba's cache) - the check that
     decides between the compiled and the numpy iteration must not claim a cold cache warm."""

@@ -21,6 +21,8 @@ and :func:`warm_up` compile synchronously (a background build in progress is wai
 
 from __future__ import annotations
 
+import atexit
+import sys
 import threading
 import warnings
 
@@ -481,6 +483,20 @@ def compile_in_background() -> None:
         thread = threading.Thread(target=_build_quietly, name="dolfinx_lopinf-mass-jit", daemon=True)
         _BACKGROUND.append(thread)
         thread.start()
+        atexit.register(_finish_at_exit)
+
+
+def _finish_at_exit() -> None:
+    """Wait for a background build still running when the program ends. A daemon thread
+    inside LLVM while the interpreter and LLVM's own globals are torn down can abort the
+    process (seen once: an LLVM assertion and exit code 134 after a script had finished its
+    work); the build is cached, so the wait is paid once per machine."""
+    for thread in _BACKGROUND:
+        if thread.is_alive():
+            print("dolfinx_lopinf: finishing the one-time build of the compiled learned-mass fit "
+                  "before exiting (cached for later runs; DOLFINX_LOPINF_JIT=0 turns the "
+                  "compiled path off)", file=sys.stderr, flush=True)
+            thread.join()
 
 
 def _build_quietly() -> None:
