@@ -167,3 +167,50 @@ def test_auto_keeps_the_loops_own_scheme_where_closure_favours_a_dissipative_one
         tr = model.predict(n_steps=len(d["test_times"]) - 1, inputs=lambda t: np.array([_shake(t)]))
         err = np.linalg.norm(model.reconstruct(tr.Qh) - d["test_Q"]) / np.linalg.norm(d["test_Q"])
         assert err < bound, (r, err)
+
+
+def test_an_uncertified_learned_mass_fit_is_refitted_with_a_larger_ridge(monkeypatch):
+    """lo.fit's final learned-mass fit: uncertified at the default ridge -> the ridge raised
+    10x, 100x, 1000x until certified; that fit is returned, its certificate names the ridge
+    and a SolverWarning says so. None certified: the first fit and its own warnings (strict:
+    its SolverFailedError). A user's ridge or Mh = I is never changed."""
+    import importlib
+
+    from dolfinx_lopinf.core.gram import MechanicalOperators
+    from dolfinx_lopinf.errors import SolverFailedError, SolverWarning
+
+    F = importlib.import_module("dolfinx_lopinf.core.fit")
+    ridge0 = F.RIDGE
+    calls = []
+
+    def fake(certified_from):
+        def fit_relation(relation, pieces, damping, eps, ridge, strict, mass):
+            calls.append(ridge)
+            ok = ridge >= certified_from * (1 - 1e-12)
+            if not ok:
+                if strict:
+                    raise SolverFailedError("not certified")
+                warnings.warn("learned-mass fit not certified", SolverWarning, stacklevel=2)
+            return MechanicalOperators(K=np.eye(2), C=None, B=None,
+                                       certificate={"certified": ok, "duality_gap": 0.0 if ok else 1e-5})
+        return fit_relation
+
+    monkeypatch.setattr(F, "_fit_relation", fake(100 * ridge0))
+    with pytest.warns(SolverWarning, match="certified with 1e-07"):
+        ops = F._final_fit("newmark", [], True, 1e-8, ridge0, False, "learned")
+    assert ops.certificate["certified"] and ops.certificate["ridge"] == pytest.approx(100 * ridge0)
+    assert calls == pytest.approx([ridge0, 10 * ridge0, 100 * ridge0])
+
+    calls.clear()
+    monkeypatch.setattr(F, "_fit_relation", fake(np.inf))
+    with pytest.warns(SolverWarning, match="learned-mass fit not certified"):
+        ops = F._final_fit("newmark", [], True, 1e-8, ridge0, False, "learned")
+    assert not ops.certificate["certified"] and "ridge" not in ops.certificate and len(calls) == 4
+    with pytest.raises(SolverFailedError):
+        F._final_fit("newmark", [], True, 1e-8, ridge0, True, "learned")
+
+    calls.clear()
+    with pytest.warns(SolverWarning):
+        F._final_fit("newmark", [], True, 1e-8, 1e-7, False, "learned")  # the user's ridge
+        F._final_fit("newmark", [], True, 1e-8, ridge0, False, "identity")
+    assert calls == [1e-7, ridge0]
