@@ -43,7 +43,8 @@ from .basis import Basis, from_svd, pod
 from ._checks import as_real_array
 from ..errors import (FileFormatError, InputError, SchemeMismatchWarning, SolverFailedError,
                       SolverWarning, warn)
-from .identify import REFINEMENT_GAIN, SHORTLIST, Residual, identify, standard_members
+from .identify import (CLEAR_GAIN, REFINEMENT_GAIN, RESIDUAL_FLOOR, SHORTLIST, Residual, identify,
+                       standard_members)
 from ._blas import serial_blas
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
@@ -514,9 +515,9 @@ def _relation_for(requested, pieces, check_r):
         scheme, ident = identify(pieces, members=members, check_r=check_r)
         ident["coordinates"] = [int(pieces[0][0].shape[0]), int(check_r)]
         res = ident["residuals"]
-        floor = max(min(res.values()), 1e-10)
+        floor = max(min(res.values()), RESIDUAL_FLOOR)
         if scheme not in members:  # a refinement: the standard member it refined
-            ident["best_member"] = next(m.spec for m in members if res[m.spec] <= 2.0 * floor)
+            ident["best_member"] = next(m.spec for m in members if res[m.spec] <= CLEAR_GAIN * floor)
         if ident.get("loads") in ("none", "linear") and floor <= CLOSURE_LEVEL \
                 and not isinstance(scheme, schemes.FiniteDifferences):
             # loads linear between bends (or none) do not show where a loop samples them, and

@@ -230,11 +230,7 @@ class Residual:
         the kind of relation), divided by ||Qm||_F."""
         self.evaluations += 1
         Y, D = self._system(scheme)
-        scale = np.linalg.norm(D, axis=0)
-        scale[scale == 0] = 1.0
-        Qd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)[0]
-        res = Y - Qd @ (Qd.T @ Y)
-        return res.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
+        return _relative(_project_off(Y, D)[3], Y)
 
     def compressed(self, scheme) -> bool:
         """Whether ``scheme``'s relation is evaluated on the compressed data."""
@@ -295,16 +291,12 @@ class Residual:
                 self.evaluations += 1
                 w = weights(x)
                 Y, D = self._combined(w)
-                scale = np.linalg.norm(D, axis=0)
-                scale[scale == 0] = 1.0
-                Qd, Rd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)
-                E = Y - Qd @ (Qd.T @ Y)
-                cache[key] = (x, w, Y, scale, Qd, Rd, E)
+                cache[key] = (x, w, Y) + _project_off(Y, D)
             return cache[key]
 
         def fun(x):
             _, _, Y, _, _, _, E = evaluate(x)
-            return E.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
+            return _relative(E, Y)
 
         def jac(x):
             x, w, Y, scale, Qd, Rd, E = evaluate(x)
@@ -331,6 +323,20 @@ class Residual:
             return J
 
         return fun, jac
+
+
+def _project_off(Y, D):
+    """(scale, Qd, Rd, E): D's column norms (zero columns count 1), the thin QR of D with
+    unit columns, and E = Y - Qd Qd^T Y, the part of Y the free fit cannot reach."""
+    scale = np.linalg.norm(D, axis=0)
+    scale[scale == 0] = 1.0
+    Qd, Rd = scipy.linalg.qr(D / scale, mode="economic", check_finite=False)
+    return scale, Qd, Rd, Y - Qd @ (Qd.T @ Y)
+
+
+def _relative(E, Y):
+    """The residual E as a vector, relative to ||Y||_F."""
+    return E.ravel() / max(np.linalg.norm(Y), np.finfo(float).tiny)
 
 
 def _fit(residual: Residual, build, x0, lo, hi):
