@@ -154,6 +154,10 @@ def test_lyapunov_is_exact_and_wants_one_block():
     K = np.diag([1.0, 2.0, 3.0, 4.0])
     theta, cert = lsq.Lyapunov().solve(lsq.Problem(L, -K @ L, 1, EPS))
     assert np.allclose(theta, K, atol=1e-12) and cert.converged and cert.solver == "lyapunov"
+    assert cert.duality_gap == 0.0  # >= eps I: the constrained optimum, certified
+    indefinite = np.diag([-1.0, 2.0, 3.0, 4.0])
+    _, cert = lsq.Lyapunov().solve(lsq.Problem(L, -indefinite @ L, 1, EPS))
+    assert cert.duality_gap is None  # the unconstrained minimiser: no certificate
     with pytest.raises(ValueError, match="one symmetric block"):
         lsq.Lyapunov().solve(_problem())
 

@@ -35,13 +35,17 @@ def solve_symmetric(L: np.ndarray, Z: np.ndarray) -> np.ndarray:
 
 
 class Lyapunov(Strategy):
-    """One symmetric block, no definiteness: :func:`solve_symmetric` (closed form)."""
+    """One symmetric block, no definiteness: :func:`solve_symmetric` (closed form). When the
+    minimiser is >= eps I it is also the constrained optimum (zero multiplier): duality gap 0;
+    else it answers the unconstrained problem only (duality gap None: no certificate)."""
 
     def solve_blocks(self, problem: Problem):
         self._one_block(problem)
         t0 = time.perf_counter()
         K = solve_symmetric(problem.L, problem.Z)
-        return K, Certificate("lyapunov", True, 0, seconds=time.perf_counter() - t0)
+        feasible = bool(np.linalg.eigvalsh(K)[0] >= problem.eps)
+        return K, Certificate("lyapunov", True, 0, seconds=time.perf_counter() - t0,
+                              duality_gap=0.0 if feasible else None)
 
 
 class EigenbasisADMM(Strategy):
