@@ -17,7 +17,8 @@ Which loop runs is chosen per call: ``simulate(..., backend="auto" | "numpy" | "
 ``auto`` is numba when it imports and ``DOLFINX_LOPINF_JIT`` is not ``0``. The kernels are
 compiled eagerly for fixed signatures with ``cache=True`` the first time they are needed
 (or by :func:`warm_up`, which returns the seconds that took), before any simulation timer
-starts; later processes load them from numba's cache. When neither the package directory
+starts, and run without the GIL (``nogil``: threads run them side by side); later
+processes load them from numba's cache. When neither the package directory
 nor numba's user-wide cache directory is writable (a read-only install without a home
 directory), the cache goes to a directory under the system temp dir; if that fails too,
 the kernels are compiled without a cache and a warning says so.
@@ -410,7 +411,8 @@ class KernelSet:
             for name in self._order:
                 fn = getattr(self._ns[name], "py_func", self._ns[name])  # a retry after a failure
                 out[name] = jit(fn, self._signatures[name],
-                                fastmath=self._fastmath.get(name, {"contract"}), error_model="numpy")
+                                fastmath=self._fastmath.get(name, {"contract"}), error_model="numpy",
+                                nogil=True)
                 self._ns[name] = out[name]
             self._kernels = out
             self.compile_seconds = time.perf_counter() - t0

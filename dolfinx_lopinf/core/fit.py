@@ -27,7 +27,10 @@ never by the last bits, and a richer model must earn its place by a clear margin
 mass that is the identity up to a scale in every direction the data see is not a different
 model: it is replaced by Mh = I (the data cannot separate them; the structurally exact model
 extrapolates better). A named scheme whose relation residual is 3x another's gets a
-:class:`~dolfinx_lopinf.errors.SchemeMismatchWarning` naming the better one.
+:class:`~dolfinx_lopinf.errors.SchemeMismatchWarning` naming the better one. From r = 12 on
+the candidates are fitted on threads (the cores the process may use, shared among MPI ranks,
+or ``DOLFINX_LOPINF_FIT_THREADS``); each is computed as alone, so the result does not depend
+on the thread count.
 """
 
 from __future__ import annotations
@@ -71,6 +74,10 @@ ID_SAMPLES_PER_UNKNOWN = 4
 #: modes' closure, the data's rounding); above it no member is the data's scheme and the
 #: choice between members is a matter of fit, not of identity (:func:`_relation_for`)
 CLOSURE_LEVEL = 1e-3
+#: From this r on, the candidates are fitted on threads (:func:`fit_threads`; below it a fit
+#: takes milliseconds and threads cost more than they give: measured in the CHANGELOG)
+PARALLEL_FROM_R = 12
+FIT_THREADS_ENV = "DOLFINX_LOPINF_FIT_THREADS"
 #: A named scheme whose relation residual exceeds the best one's by this factor is contradicted.
 MISMATCH = 3.0
 #: ... and exceeds this (below it both relations hold to the data's accuracy)
@@ -279,25 +286,66 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
                          + " and ".join(f"{n}=" for n in still) + " (chosen automatically "
                          "by comparing held-back predictions) to skip the comparison") from None
     backend = compiled.resolve_backend("auto")
-    errors, notes = {}, {}
-    for mass, damping, rel in _candidates(relations, masses, dampings):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass)
-            except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
-                errors[(mass, damping, rel)] = float("inf")  # a failed candidate loses
-                notes[(mass, damping, rel)] = str(exc)[:200]
-                continue
-        if mass == "learned" and _is_scaled_identity(ops.M, np.hstack([p[0] for p in fit_part])):
-            notes[(mass, damping, rel)] = "learned Mh = c I: the same model as Mh = I"
-            errors[(mass, damping, rel)] = float("inf")
-            continue
-        errors[(mass, damping, rel)] = max(prediction_error(ops, schemes.rom_scheme(rel)
-                                                            if isinstance(rel, schemes.FiniteDifferences)
-                                                            else rel, h, dt, backend)
-                                           for h in held)
+    states = np.hstack([p[0] for p in fit_part])
+
+    def evaluate(candidate):
+        mass, damping, rel = candidate
+        try:
+            ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass)
+        except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+            return float("inf"), str(exc)[:200]  # a failed candidate loses
+        if mass == "learned" and _is_scaled_identity(ops.M, states):
+            return float("inf"), "learned Mh = c I: the same model as Mh = I"
+        scheme = schemes.rom_scheme(rel) if isinstance(rel, schemes.FiniteDifferences) else rel
+        return max(prediction_error(ops, scheme, h, dt, backend) for h in held), None
+
+    order = _candidates(relations, masses, dampings)
+    with warnings.catch_warnings():  # the candidates' own warnings are not the user's
+        warnings.simplefilter("ignore")
+        results = _map(evaluate, order, states.shape[0])
+    errors = {c: e for c, (e, _) in zip(order, results)}
+    notes = {c: n for c, (_, n) in zip(order, results) if n is not None}
     return errors, notes
+
+
+def _map(func, items, r):
+    """[func(x) for x in items], on threads from r = PARALLEL_FROM_R on (:func:`fit_threads`):
+    the fits' compiled kernels and LAPACK run without the GIL. The results come in the order of
+    ``items`` and each is computed exactly as alone, so the choice does not depend on the
+    threads' timing."""
+    workers = min(len(items), fit_threads()) if r >= PARALLEL_FROM_R else 1
+    if workers <= 1:
+        return [func(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="lopinf-candidate") as pool:
+        return list(pool.map(func, items))
+
+
+def fit_threads() -> int:
+    """Threads for the candidates' fits: the environment's DOLFINX_LOPINF_FIT_THREADS, else
+    the cores this process may use, shared among the MPI ranks if mpi4py is running."""
+    import os
+    import sys
+
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    mpi = sys.modules.get("mpi4py.MPI")
+    if mpi is not None and mpi.Is_initialized() and not mpi.Is_finalized():
+        cores = max(1, cores // mpi.COMM_WORLD.size)
+    value = os.environ.get(FIT_THREADS_ENV)
+    if value is None or value.strip() == "":
+        return cores
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise InputError(f"{FIT_THREADS_ENV}={value!r}: give a whole number of threads >= 1 "
+                         "(1 fits the candidates one after another)")
+    return n
 
 
 def _preferred(errors, order):

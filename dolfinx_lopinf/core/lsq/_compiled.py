@@ -21,7 +21,8 @@ the numpy path calls): their addresses are registered with LLVM under fixed symb
 when this module is imported, and the kernels call those names, so numba can cache the
 compiled code (the addresses change from process to process, the names do not). The
 kernels compile on first use with ``cache=True`` (:func:`warm_up` does it ahead of any
-timer and returns the seconds it took); later processes load them from numba's cache.
+timer and returns the seconds it took) and run without the GIL (``nogil``); later processes
+load them from numba's cache.
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ equilibrated Cholesky with the numpy path's diagonal shifts, the refined directi
 exact pencil step lengths and the update; ``_estimate`` is ``_State.gap_estimate``. Python
 keeps the loop, the certificate (``FractionalProblem.certify``, called a few times per fit)
 and the stall test, so the iterates agree with the numpy path to rounding (tests). Kernels
-compile with ``cache=True``; later processes load them from numba's cache.
+compile with ``cache=True`` and run without the GIL (``nogil``: lo.fit fits its candidates on
+threads); later processes load them from numba's cache.
 
 Cold cache. Compiling them (with the Mh = I kernels of :mod:`._compiled` they call) takes
 tens of seconds - LLVM optimising a 10 MB module - which a fresh machine (CI) would pay inside
