@@ -135,6 +135,8 @@ class QuadraticPSD:
             vals = Pk[np.arange(len(Pk)), cols]
             ok = (nz.sum(axis=1) == 1).all() and len(set(cols.tolist())) == len(cols) \
                 and np.all(vals == vals[0])
+            if ok and len(cols) and np.array_equal(cols, np.arange(cols[0], cols[0] + len(cols))):
+                cols = slice(int(cols[0]), int(cols[0]) + len(cols))  # contiguous: a view, no gather
             out.append((cols, float(vals[0])) if ok else None)
         return out
 
@@ -230,22 +232,28 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         X = p.slacks(x)
         mu = sum(float(np.sum(Xk * Lk)) for Xk, Lk in zip(X, Lam)) / m
         Xi = [np.linalg.inv(Xk) for Xk in X]
-        S = 2.0 * p.H.copy()
+        S = 2.0 * p.H
         for k, (Pk, Xik, Lk, nk) in enumerate(zip(p.P, Xi, Lam, p.sizes)):
             Kk = _kernel(Xik, Lk, nk)
             sel = p.selections[k]
             if sel is not None:  # P_k = scale x (a selection of unknowns): scatter, no products
                 idx, scale = sel
-                S[np.ix_(idx, idx)] += (scale * scale) * Kk
+                Kk *= scale * scale
+                if isinstance(idx, slice):  # a contiguous range (the Gram block): in place
+                    S[idx, idx] += Kk
+                else:
+                    S[np.ix_(idx, idx)] += Kk
             else:
                 S += Pk.T @ Kk @ Pk
-        S = sym(S)
-        dd = 1.0 / np.sqrt(np.diag(S))
-        Ss = S * dd[:, None] * dd[None, :]
+        S += S.T  # 2 sym(S), in place (numpy buffers the overlapping transpose)
+        dd = 1.0 / np.sqrt(0.5 * np.diag(S))
+        S *= 0.5 * dd[:, None]
+        S *= dd[None, :]  # the equilibrated sym(S)
         fac = None
         for shift in SHIFTS:
             try:
-                fac = scipy.linalg.cho_factor(Ss + shift * np.eye(n), lower=True, check_finite=False)
+                fac = scipy.linalg.cho_factor(S if shift == 0.0 else S + shift * np.eye(n), lower=True,
+                                              check_finite=False)
                 break
             except np.linalg.LinAlgError:
                 continue

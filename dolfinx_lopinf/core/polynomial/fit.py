@@ -274,11 +274,12 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
             floor of 1e-10, 2.8e-4 with 1e-13, 2.6e-4 with 0 (Galerkin ROM 2.15e-4).
         ridge: relative Tikhonov parameter on the column-normalised data.
         solver: ``"cvxpy"`` (default): every constrained fit by Clarabel; ``"ipm"``: the
-            "sos" fit by our interior point (:mod:`dolfinx_lopinf.core.polynomial.sos`: faster
-            than Clarabel on the noisy test systems with the same residual, but its certificate
-            stalls near 1e-6 relative, and on near-exact data - exact data's coefficients 2e-4
-            off; the SVK cantilever's probes at r = 4 left at relative residual 3e-5 against
-            Clarabel's 3e-9 - it is not certified: not yet the default).
+            "sos" fit by our interior point (:mod:`dolfinx_lopinf.core.polynomial.sos`):
+            certified and 5-15x faster than Clarabel with the same residual on noisy data,
+            but its gap is relative to max(misfit, 1e-6 ||z||^2), so on near-exact data it
+            stops at that floor - the SVK cantilever's probes: relative residual 2.1e-8 (r = 4)
+            and 3.5e-8 (r = 6, stalled at gap 1.2e-8) against Clarabel's 4.6e-9 and 4.5e-9,
+            which moved the demo's r = 4 tip error by 1 %. Not the default for that reason.
         strict: raise SolverFailedError when a constrained fit is not certified.
 
     Returns:
@@ -300,6 +301,9 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
         raise InputError(f"damping must be True or False, got {damping!r}")
     if solver not in ("ipm", "cvxpy"):
         raise InputError(f"solver must be 'cvxpy' or 'ipm', got {solver!r}")
+    if solver == "ipm" and constraint not in ("sos", "none"):
+        raise InputError(f"solver='ipm' solves the 'sos' fit only; constraint={constraint!r} is "
+                         "solved by 'cvxpy' (Clarabel)")
     data = concat_data(data)
     r, N = data.D2.shape
     m = 0 if data.Ubar is None else data.Ubar.shape[0]
