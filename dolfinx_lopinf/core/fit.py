@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import compiled, schemes
+from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
 from .basis import Basis, from_svd, pod
 from ._checks import as_real_array
@@ -245,11 +245,11 @@ def _stacked(parts):
     return Qk, Qc, Qm, Uf
 
 
-def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity"):
+def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity", solver="auto"):
     """L-OpInf on the stacked relation data of several trajectories."""
     Qk, Qc, Qm, Uf = _stacked([_relation_data(scheme, p) for p in pieces])
     return infer_mechanical(Qk, Qc if damping else None, Qm, Uf, damping=damping, eps=eps,
-                            ridge=ridge, strict=strict, mass=mass)
+                            ridge=ridge, strict=strict, mass=mass, solver=solver)
 
 
 def _relation_data(scheme, piece):
@@ -290,8 +290,9 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
 
     def evaluate(candidate):
         mass, damping, rel = candidate
-        try:
-            ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass)
+        try:  # Mh = I: the interior point without its slow fallbacks (lsq.Auto)
+            ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass,
+                                lsq.Auto(fallback=False) if mass == "identity" else "auto")
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             return float("inf"), str(exc)[:200]  # a failed candidate loses
         if mass == "learned" and _is_scaled_identity(ops.M, states):

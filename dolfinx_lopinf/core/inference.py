@@ -155,10 +155,10 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
                          "(damping=False, U=None); use 'auto', 'admm' or 'cvxpy'")
     if named == "cvxpy":
         ops = _solve_cvxpy(gram, eps)
-    elif conservative and named in ("auto", "lyapunov"):
+    elif conservative and (named in ("auto", "lyapunov") or _is_auto(solver)):
         ops = _solve_lyapunov(gram, eps)
         if named != "lyapunov" and ops.certificate["min_eig_K"] < eps:
-            ops = _solve_constrained(gram, eps, lsq.Auto())
+            ops = _solve_constrained(gram, eps, solver if _is_auto(solver) else lsq.Auto())
     else:
         ops = _solve_constrained(gram, eps, lsq.Auto(named) if named else solver)
     if strict and not ops.certificate.get("certified", False) and named != "lyapunov":
@@ -167,6 +167,12 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
                                 f"{c.get('duality_gap', float('nan')):.2e}, status {c['status']}); "
                                 "strict=True asks for an error instead of an uncertified model")
     return _unscaled(ops, c_state, c_input)
+
+
+def _is_auto(solver) -> bool:
+    """An :class:`~dolfinx_lopinf.core.lsq.Auto` object with the interior point (as "auto",
+    perhaps without its fallbacks)."""
+    return isinstance(solver, lsq.Auto) and solver.method == "auto"
 
 
 def _unit_scaled(Qh, dQh, ddQh, U):

@@ -601,3 +601,40 @@ def test_strict_raises_instead_of_returning_an_uncertified_fit():
     with pytest.raises(lo.errors.SolverFailedError, match="not certified"):
         lo.core.infer_mechanical(Qh, dQh, ddQh, U, solver=stopped_early, strict=True)
     assert lo.core.infer_mechanical(Qh, dQh, ddQh, U, strict=True).certificate["certified"]
+
+
+def test_auto_without_fallbacks_returns_the_interior_points_own_answer(monkeypatch):
+    """lsq.Auto(fallback=False) (lo.fit's candidates): when the interior point does not
+    certify, its own point comes back - feasible, marked uncertified, with its gap - instead
+    of ADMM and the barrier (seconds each on ill-conditioned data); the default still falls
+    back. Certified answers are the same either way."""
+    from dolfinx_lopinf.core.lsq import blocks
+
+    problem = _problem(r=4, n_blocks=2, seed=3)
+    theta, cert = lsq.Auto(fallback=False).solve(problem)
+    ref, ref_cert = lsq.Auto().solve(problem)
+    assert cert.converged and ref_cert.converged and np.array_equal(theta, ref)
+
+    real = blocks.interior_point
+
+    def uncertified(*args, **kwargs):
+        x, ip, details = real(*args, **kwargs)
+        ip.converged, ip.duality_gap = False, 3e-6
+        return x, ip, details
+
+    monkeypatch.setattr(blocks, "interior_point", uncertified)
+    theta, cert = lsq.Auto(fallback=False).solve(problem)
+    assert cert.solver == "ipm" and not cert.converged and cert.duality_gap == 3e-6
+    _assert_feasible(theta, problem)
+    calls = []
+    original_run = blocks.FaceADMM.run
+
+    def recorded_run(self, *args):
+        calls.append("admm")
+        return original_run(self, *args)
+
+    monkeypatch.setattr(blocks.FaceADMM, "run", recorded_run)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lsq.Auto().solve(problem)
+    assert calls == ["admm"]

@@ -42,7 +42,7 @@ class PSDBlocks(Strategy):
     def __init__(self, gap_tol: float = 1e-8, kkt_tol: float = 1e-9, admm_tol: float = 1e-4,
                  max_iter: int = 5000, memory: int = 8, rho0: float = 0.3, method: str = "auto",
                  ipm_max_iter: int = 40, eliminate: bool = True, backend: str = "auto",
-                 resolve: bool = False):
+                 resolve: bool = False, fallback: bool = True):
         if method not in ("auto", "admm"):
             raise InputError(f"method must be 'auto' (interior point, ADMM as fallback) or 'admm', "
                              f"not {method!r}")
@@ -51,6 +51,8 @@ class PSDBlocks(Strategy):
         # interior point failed (or H singular) on a problem Problem.resolved changes: solve
         # the resolved one instead (certificate: ridge_raised_to, gap_floor)
         self.resolve = resolve
+        # the interior point uncertified: ADMM to the face (True), or its own point as it is
+        self.fallback = fallback
         self.face_admm = FaceADMM(gap_tol, kkt_tol, admm_tol, max_iter, memory, rho0)
 
     def solve_blocks(self, problem: Problem):
@@ -59,7 +61,7 @@ class PSDBlocks(Strategy):
         if feasible.all():
             return symmetric_answer(problem, x, t0)
         newton = FaceNewton(problem, self.face_admm.gap_tol)
-        details = {}
+        details, best = {}, None
         if self.method == "auto" and problem.spd.ok:  # the certificate needs H > 0
             x_ip, ip, details = interior_point(problem, x, feasible, newton,
                                                gap_tol=self.face_admm.gap_tol,
@@ -67,6 +69,7 @@ class PSDBlocks(Strategy):
                                                backend=self.backend)
             if ip.converged:
                 return problem.index.theta(x_ip), ip_answer(ip, details, newton, t0)
+            best = (x_ip, ip)
         if self.resolve:  # H singular, or the interior point failed: is double precision why?
             resolved, ridge = _resolved(problem)
             if resolved is not problem:
@@ -75,6 +78,8 @@ class PSDBlocks(Strategy):
                 theta, cert = again.solve_blocks(resolved)
                 cert.details.update(ridge_raised_to=ridge, gap_floor=resolved.floor)
                 return theta, cert
+        if not self.fallback and best is not None:  # the interior point's point, uncertified
+            return problem.index.theta(best[0]), ip_answer(best[1], details, newton, t0)
         return self.face_admm.run(problem, x, newton, details, t0)
 
 
@@ -108,7 +113,10 @@ class Auto(Strategy):
     is not certified (held-out one-block fits, ``studies.held_out --conservative``: the
     interior point needs far fewer iterations than EigenbasisADMM there).
     ``method="admm"`` skips the interior point and the Lyapunov shortcut: the ADMM
-    strategies alone (the comparison path).
+    strategies alone (the comparison path). ``fallback=False`` stops after the interior point
+    (and its crossover): an uncertified answer is its point, with its gap - what lo.fit's
+    candidates use, whose fits only predict held-back data (the fallbacks took seconds there
+    for a gap no smaller: the membrane loop at r = 20).
 
     The interior point first tries the blocks whose symmetric minimiser is indefinite alone
     (``PSDBlocks(eliminate=True)``) only from r = ``ELIMINATE_FROM_R`` on: the attempt
@@ -118,17 +126,19 @@ class Auto(Strategy):
     both).
     """
 
-    def __init__(self, method: str = "auto", backend: str = "auto"):
+    def __init__(self, method: str = "auto", backend: str = "auto", fallback: bool = True):
         if method not in ("auto", "admm"):
             raise InputError(f"method must be 'auto' or 'admm', not {method!r}")
-        self.method, self.backend = method, backend
+        self.method, self.backend, self.fallback = method, backend, fallback
 
     def solve_blocks(self, problem: Problem):
         if problem.n_blocks > 1:
             resolve = self.method == "auto"
             theta, cert = PSDBlocks(method=self.method, backend=self.backend, resolve=resolve,
-                                    eliminate=problem.r >= ELIMINATE_FROM_R).solve_blocks(problem)
-            if not cert.converged:  # on the problem PSDBlocks last solved (resolved is cached)
+                                    eliminate=problem.r >= ELIMINATE_FROM_R,
+                                    fallback=self.fallback).solve_blocks(problem)
+            if not cert.converged and (self.fallback or cert.solver != "ipm"):
+                # on the problem PSDBlocks last solved (resolved is cached)
                 solved, ridge = problem.resolved() if resolve else (problem, None)
                 theta, cert = Barrier().solve_blocks(solved)
                 if solved is not problem:
@@ -143,6 +153,6 @@ class Auto(Strategy):
                 # only its own answer: on rank-edge data its Cholesky-based symmetric
                 # minimiser can come out >= eps I where Lyapunov's did not (the weak directions
                 # are rounding there; make test-rounding) - one verdict, so EigenbasisADMM
-                if cert.converged and cert.solver == "ipm":
+                if (cert.converged or not self.fallback) and cert.solver == "ipm":
                     return theta, cert
         return EigenbasisADMM().solve_blocks(problem)
