@@ -316,14 +316,16 @@ def fit_table(paths, r_values, repeats: int = 3) -> list[dict]:
     its refusal."""
     from ..core import compiled
     from ..core.lsq import _compiled, _fractional_compiled
-    from ..core.fit import fit
+    from ..core.fit import PARALLEL_FROM_R, fit, fit_threads
     from ..core.snapshots import Snapshots
     from ..errors import InputError
 
     compiled.warm_up()
     _compiled.warm_up()
     _fractional_compiled.warm_up()
-    print(f"\nlo.fit defaults end to end (best of {repeats}, after one warm-up fit)\n"
+    threads = fit_threads()
+    print(f"\nlo.fit defaults end to end (best of {repeats}, after one warm-up fit; the candidates "
+          f"on {threads} thread{'s' if threads > 1 else ''} from r = {PARALLEL_FROM_R} on)\n"
           f"{'snapshots':>28} {'r':>3} {'wall s':>7} {'mass':>8} {'gap':>9} cert warn scheme")
     rows = []
     for path in paths:
@@ -350,8 +352,10 @@ def fit_table(paths, r_values, repeats: int = 3) -> list[dict]:
             rep, cert = model.report, model.report["certificate"]
             row.update(seconds=best, mass=rep["mass"], damping=rep["damping"], scheme=rep["scheme"],
                        duality_gap=cert.get("duality_gap"), certified=bool(cert.get("certified")),
-                       warnings=len(seen))
-            print(f"{name[:28]:>28} {r:>3} {best:7.3f} {rep['mass']:>8} {row['duality_gap']:9.1e} "
+                       warnings=len(seen), threads=threads if r >= PARALLEL_FROM_R else 1)
+            gap = row["duality_gap"]
+            print(f"{name[:28]:>28} {r:>3} {best:7.3f} {rep['mass']:>8} "
+                  f"{'-' if gap is None else format(gap, '9.1e'):>9} "
                   f"{'yes' if row['certified'] else 'NO':>4} {len(seen):>4} {rep['scheme'][:40]}")
             rows.append(row)
     return rows

@@ -264,3 +264,23 @@ def test_a_bad_thread_count_is_named(monkeypatch, value):
         F.fit_threads()
     monkeypatch.setenv(F.FIT_THREADS_ENV, "3")
     assert F.fit_threads() == 3
+
+
+def test_fit_threads_are_shared_among_mpi_ranks(monkeypatch):
+    """Under MPI (mpi4py initialised) each rank takes its share of the cores, at least one."""
+    import importlib
+    import os
+    import sys
+    import types
+
+    F = importlib.import_module("dolfinx_lopinf.core.fit")
+    monkeypatch.delenv(F.FIT_THREADS_ENV, raising=False)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    fake = types.SimpleNamespace(Is_initialized=lambda: True, Is_finalized=lambda: False,
+                                 COMM_WORLD=types.SimpleNamespace(size=3))
+    monkeypatch.setitem(sys.modules, "mpi4py.MPI", fake)
+    assert F.fit_threads() == 2
+    fake.COMM_WORLD.size = 16
+    assert F.fit_threads() == 1
+    monkeypatch.delitem(sys.modules, "mpi4py.MPI")
+    assert F.fit_threads() == 8
