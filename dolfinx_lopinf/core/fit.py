@@ -42,7 +42,7 @@ import numpy as np
 
 from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
-from .basis import Basis, from_svd, pod
+from .basis import Basis, from_svd, leading_svd, pod
 from ._checks import as_real_array
 from ..errors import (FileFormatError, InputError, SchemeMismatchWarning, SolverFailedError,
                       SolverWarning, warn)
@@ -70,6 +70,11 @@ ID_RANK_RTOL = 1e-10
 #: per unknown (fewer over-fit the truncated modes' closure error); the held-back check,
 #: which fits three quarters of the samples, twice as many
 ID_SAMPLES_PER_UNKNOWN = 4
+#: lo.fit computes the leading max(r, ID_MAX_R) + LEADING_EXTRA singular triplets of the
+#: snapshots (block subspace iteration) when min(n, K) is at least LEADING_FROM times that
+#: (the same vectors to the data's rounding, a fraction of the cost: CHANGELOG); smaller
+#: data: the full thin SVD
+LEADING_EXTRA, LEADING_FROM = 16, 3
 #: The relation of the data's scheme holds to this relative residual or better (the truncated
 #: modes' closure, the data's rounding); above it no member is the data's scheme and the
 #: choice between members is a matter of fit, not of identity (:func:`_relation_for`)
@@ -414,7 +419,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
     dt = trajs[0].dt
     Q_all = np.hstack([s.Q for s in trajs])
-    svd = np.linalg.svd(Q_all, full_matrices=False)[:2]  # one SVD: the basis, identification
+    svd = _leading_modes(Q_all, r)  # one SVD: the basis, identification
     if basis is None:
         basis = pod(Q_all, r, blocks=trajs[0].blocks) if trajs[0].blocks \
             else from_svd(*svd, r)
@@ -536,6 +541,17 @@ def _pieces(trajs, P, weight=None):
         return None if a is None else P @ (a if weight is None else weight @ a)
 
     return [(project(s.Q), s.times, s.U, s.input_times, project(s.V), project(s.A)) for s in trajs]
+
+
+def _leading_modes(Q, r):
+    """(U, s) of the snapshots: the leading max(r, ID_MAX_R) + LEADING_EXTRA singular
+    triplets (:func:`~dolfinx_lopinf.core.basis.leading_svd`) when the data are at least
+    LEADING_FROM times wider than that, else the full thin SVD. Everything lo.fit decides
+    (the rank check of r, the identification's coordinates) uses only these."""
+    k = max(int(r), ID_MAX_R) + LEADING_EXTRA
+    if min(Q.shape) >= LEADING_FROM * k:
+        return leading_svd(Q, k)
+    return np.linalg.svd(Q, full_matrices=False)[:2]
 
 
 def _identification_pieces(trajs, svd, r):

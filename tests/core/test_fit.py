@@ -284,3 +284,22 @@ def test_fit_threads_are_shared_among_mpi_ranks(monkeypatch):
     assert F.fit_threads() == 1
     monkeypatch.delitem(sys.modules, "mpi4py.MPI")
     assert F.fit_threads() == 8
+
+
+def test_fit_on_large_data_uses_the_leading_modes_and_refuses_r_above_the_rank(monkeypatch):
+    """lo.fit's basis and identification from the leading singular triplets when the data are
+    large (basis.leading_svd): the refusal of an r above the numerical rank names the rank as
+    the full SVD does."""
+    import importlib
+
+    F = importlib.import_module("dolfinx_lopinf.core.fit")
+    rng = np.random.default_rng(2)
+    t = 0.01 * np.arange(400)
+    Q = rng.standard_normal((300, 10)) @ np.vstack([np.sin((j + 1) * t) for j in range(10)])
+    snaps = lo.Snapshots(t, Q)
+    used = []
+    real = F.leading_svd
+    monkeypatch.setattr(F, "leading_svd", lambda *a, **k: used.append(a[1]) or real(*a, **k))
+    with pytest.raises(lo.errors.InputError, match="numerical rank 10"):
+        lo.fit(snaps, 12)
+    assert used == [max(12, F.ID_MAX_R) + F.LEADING_EXTRA]

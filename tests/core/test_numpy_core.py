@@ -207,3 +207,35 @@ def test_newmark_data_recover_the_discrete_operators_exactly():
     assert np.abs(fd.K - K).max() > 1e-2 * np.abs(K).max()  # the bias the Newmark data remove
     with pytest.raises(ValueError, match="columns"):
         newmark_data(tr.Qh, tr.times, U[:, :-1])
+
+
+def test_leading_svd_matches_the_full_svd_to_the_datas_rounding():
+    """basis.leading_svd (lo.fit's SVD on large data): singular values exact to ~1e-16 s_1,
+    the leading vectors as close to the full thin SVD's as that SVD is to itself on the data
+    perturbed by 2e-16; bit-for-bit the same on a second call (seeded start)."""
+    from dolfinx_lopinf.core.basis import leading_svd
+
+    rng = np.random.default_rng(11)
+    n, K, k = 700, 500, 40
+    U0 = np.linalg.qr(rng.standard_normal((n, K)))[0]
+    W0 = np.linalg.qr(rng.standard_normal((K, K)))[0]
+    s0 = 10.0 ** (-0.6 * np.arange(K))  # a POD-like decay to far below rounding
+    Q = (U0 * s0) @ W0.T
+    U, s, _ = np.linalg.svd(Q, full_matrices=False)
+    Ul, sl = leading_svd(Q, k)
+    assert Ul.shape == (n, k) and sl.shape == (k,)
+    # absolute error at rounding (observed 3e-15 s_1; lo.fit's rank thresholds are 1e-12 and
+    # 1e-10 of s_1), relative error of the ones well above it
+    assert np.abs(sl - s[:k]).max() <= 1e-13 * s[0]
+    big = s[:k] > 1e-6 * s[0]
+    assert np.abs(sl[big] / s[:k][big] - 1).max() <= 1e-10
+    Up = np.linalg.svd(Q * (1 + 2e-16 * rng.standard_normal(Q.shape)), full_matrices=False)[0]
+
+    def angle(A, B, r):
+        c = np.linalg.svd(A[:, :r].T @ B[:, :r], compute_uv=False)
+        return float(np.sqrt(max(0.0, 1.0 - c.min() ** 2)))
+
+    for r in (4, 8, 12):  # gaps of 4x: the SVD itself moves these by ~1e-15 / s_r
+        assert angle(U, Ul, r) <= max(10 * angle(U, Up, r), 1e-12), (r, angle(U, Ul, r), angle(U, Up, r))
+    again = leading_svd(Q, k)
+    assert np.array_equal(again[0], Ul) and np.array_equal(again[1], sl)
