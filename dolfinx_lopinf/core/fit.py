@@ -35,6 +35,8 @@ on the thread count.
 
 from __future__ import annotations
 
+import os
+import sys
 import warnings
 from dataclasses import dataclass, field
 
@@ -331,9 +333,6 @@ def _map(func, items, r):
 def fit_threads() -> int:
     """Threads for the candidates' fits: the environment's DOLFINX_LOPINF_FIT_THREADS, else
     the cores this process may use, shared among the MPI ranks if mpi4py is running."""
-    import os
-    import sys
-
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
