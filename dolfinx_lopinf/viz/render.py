@@ -65,7 +65,8 @@ def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict
         below = ax.transAxes.inverted().transform((0.0, box.y0))[1] - 0.03
         where = BELOW | {"bbox_to_anchor": (0.0, below)}
     ax.legend(fontsize=8, **(where | (legend or {})))
-    fig.tight_layout()
+    if where is BESIDE:  # a legend below keeps the layout it was placed in: laid out again,
+        fig.tight_layout()  # the axes would shrink to make room and it would cover the x label
     fig.savefig(path, dpi=130, bbox_inches="tight")
     import matplotlib.pyplot as plt
 
