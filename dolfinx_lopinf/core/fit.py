@@ -304,8 +304,7 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
             return float("inf"), str(exc)[:200]  # a failed candidate loses
         if mass == "learned" and _is_scaled_identity(ops.M, states):
             return float("inf"), "learned Mh = c I: the same model as Mh = I"
-        scheme = schemes.rom_scheme(rel) if isinstance(rel, schemes.FiniteDifferences) else rel
-        return max(prediction_error(ops, scheme, h, dt, backend) for h in held), None
+        return max(prediction_error(ops, schemes.rom_scheme(rel), h, dt, backend) for h in held), None
 
     order = _candidates(relations, masses, dampings)
     with warnings.catch_warnings():  # the candidates' own warnings are not the user's
