@@ -15,7 +15,8 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
   (``petsc_options={"mat_mumps_icntl_35": 2, "mat_mumps_cntl_7": eps}``) factors faster, but
   its approximate factor used as the step's solve shifts the output and, coarse enough, makes
   the time loop unstable; as CG's preconditioner it cost more per step than the exact factor
-  on the fishtail (measured in the changelog).
+  on the fishtail (measured in the changelog). Nor does a single-precision factor
+  (``pc_precision single``) serve: the fishtail's stiffness contrast puts A beyond float32.
 * iterative (``"cg"``, ``"cg+gamg"``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``): a
   Krylov method with a preconditioner of O(n) cost per iteration, **warm-started** from the
   caller's guess (the integrators pass the acceleration, or increment, of the displacement
