@@ -57,15 +57,16 @@ def _finish(fig, ax, path, *, xlabel: str, ylabel: str, title: str, legend: dict
     ax.grid(True, which="both", alpha=0.3)
     handles = (legend or {}).get("handles") or ax.get_legend_handles_labels()[0]
     longest = max((len(h.get_label()) for h in handles), default=0)
+    below_axes = longest > LONG_LABEL
     where = BESIDE
-    if longest > LONG_LABEL:  # below the x label: where it ends, in axes coordinates
+    if below_axes:  # below the x label: where it ends, in axes coordinates
         fig.tight_layout()
         fig.canvas.draw()
         box = ax.xaxis.label.get_window_extent(fig.canvas.get_renderer())
         below = ax.transAxes.inverted().transform((0.0, box.y0))[1] - 0.03
         where = BELOW | {"bbox_to_anchor": (0.0, below)}
     ax.legend(fontsize=8, **(where | (legend or {})))
-    if where is BESIDE:  # a legend below keeps the layout it was placed in: laid out again,
+    if not below_axes:  # a legend below keeps the layout it was placed in: laid out again,
         fig.tight_layout()  # the axes would shrink to make room and it would cover the x label
     fig.savefig(path, dpi=130, bbox_inches="tight")
     import matplotlib.pyplot as plt
