@@ -417,7 +417,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
     dt = trajs[0].dt
     Q_all = np.hstack([s.Q for s in trajs])
-    svd = _leading_modes(Q_all, r)  # one SVD: the basis, identification
+    svd = _leading_modes(Q_all, r)  # one (leading) SVD: the basis and the identification
     if basis is None:
         basis = pod(Q_all, r, blocks=trajs[0].blocks) if trajs[0].blocks \
             else from_svd(*svd, r)
