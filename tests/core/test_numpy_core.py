@@ -227,7 +227,7 @@ def test_leading_svd_matches_the_full_svd_to_the_datas_rounding():
     # absolute error at rounding (observed 3e-15 s_1; lo.fit's rank thresholds are 1e-12 and
     # 1e-10 of s_1), relative error of the ones well above it
     assert np.abs(sl - s[:k]).max() <= 1e-13 * s[0]
-    big = s[:k] > 1e-6 * s[0]
+    big = s[:k] > 5e-7 * s[0]  # between the decay's values 1e-6 and 2.5e-7: no value on the edge
     assert np.abs(sl[big] / s[:k][big] - 1).max() <= 1e-10
     Up = np.linalg.svd(Q * (1 + 2e-16 * rng.standard_normal(Q.shape)), full_matrices=False)[0]
 
