@@ -260,6 +260,23 @@ def test_singular_state_covariance_warns_naming_the_dimension_or_raises_with_str
         lo.core.infer_mechanical(*data, mass="learned", strict=True)
 
 
+def test_a_jam_stops_at_any_level_but_a_plateau_with_a_falling_misfit_does_not():
+    """fractional._stalled on traces of (step, sigma, estimate, misfit): the jam of a damped
+    fit on near-exact data (the membrane loop at r = 20: centring steps alternating 0.98 /
+    0.5, estimate 1.3e-4 and misfit 1.1e-8 unchanged) stops once STALL_FLAT iterations show
+    it, far above the old threshold; the early plateau of the estimate on the COMET loop,
+    where the misfit falls 10x per iteration, does not."""
+    gap_tol, n = 1e-8, fractional.STALL_FLAT
+    assert 1.3e-4 > fractional.STALL_GAP * gap_tol  # the old rules never looked at this level
+    jam = [(0.98 if k % 2 else 0.5, 1.0, 1.3e-4 * (1 + 0.01 * (-1) ** k), 1.1e-8) for k in range(n + 1)]
+    assert fractional._stalled(jam, jam[-1][2], gap_tol)
+    assert not fractional._stalled(jam[:n], jam[n - 1][2], gap_tol)  # not enough history yet
+    plateau = [(0.82, 0.07, 5.0, 10.0 ** (6 - k)) for k in range(3 * n)]
+    assert not fractional._stalled(plateau, 5.0, gap_tol)
+    falling = [(0.82, 0.07, 10.0 ** -k, 1.0) for k in range(3 * n)]  # the gap falls, f is settled
+    assert not fractional._stalled(falling, falling[-1][2], gap_tol)
+
+
 @pytest.mark.parametrize("backend", ["numba"])
 def test_compiled_iteration_is_the_numpy_iteration(backend):
     """The compiled iteration (_fractional_compiled) reproduces the numpy one to rounding:

@@ -257,7 +257,7 @@ def _steps(SM, SO, SX, SL, s, dM, dWm, dT22, dY, dOm, dX, dL, r, b):
 
 
 def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f_floor):
-    """fractional._State.step in place: state = [nu, tau, step, sigma, failure (1.0)]."""
+    """fractional._State.step in place: state = [nu, tau, step, sigma, failure (1.0), misfit f]."""
     nv = iu0.shape[0]
     n = b * nv
     pp = b * r
@@ -383,6 +383,7 @@ def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f
     state[1] = min(tau, rho * max(f, f_floor, 1e-300) / r)  # tau never rises (fractional)
     state[2] = al
     state[3] = sigma
+    state[5] = f
 
 
 def _estimate(xs, Y, Om, Lam, tau, L, x_floor, full, r, b, f_floor):

@@ -309,8 +309,21 @@ class MassInteriorPoint:
 
 
 def _stalled(trace, est, gap_tol) -> bool:
-    """STALL_RUN short steps, or STALL_FLAT iterations without halving the estimate, once it
-    is below STALL_GAP gap_tol."""
+    """Jammed at any level: STALL_FLAT iterations that halved neither the estimate nor the
+    misfit f (trace: (step, sigma, estimate, f)). Below STALL_GAP gap_tol also: STALL_RUN short
+    steps, or STALL_FLAT iterations without halving the estimate.
+
+    The first test ends the jams of damped fits on near-exact data (centring steps, sigma ~ 1,
+    alternating step lengths, nothing moving): they ran to max_iter at an estimate of 1e-4 -
+    1e-1, 40 iterations after the last change. Early plateaus of the estimate (5 for 20
+    iterations on the COMET loop) are not jams: the misfit falls 10x per iteration there.
+    Measured on the 247 learned-mass problems lo.fit poses on held-out loops' data (COMET
+    generalised-alpha, HHT, central-difference membrane, two Newmark loops; three recording
+    styles; r = 8, 12, 20): the same 168 certified, 6,798 -> 6,380 iterations."""
+    if len(trace) > STALL_FLAT:
+        e0, f0 = trace[-STALL_FLAT - 1][2], trace[-STALL_FLAT - 1][3]
+        if est > 0.5 * e0 and trace[-1][3] > 0.5 * f0:
+            return True
     if est > STALL_GAP * gap_tol:
         return False
     short = len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
@@ -320,7 +333,7 @@ def _stalled(trace, est, gap_tol) -> bool:
 
 def _run_numpy(problem, xs, gap_tol, max_iter):
     """The iteration (module docstring): (x, Y, tau, iterations, best certificate, why it
-    stopped, trace of (step, sigma, gap estimate))."""
+    stopped, trace of (step, sigma, gap estimate, misfit f))."""
     state = _State.initial(problem, xs)
     best, best_state, trace, stopped = None, None, [], "max_iter"
     it = 0
@@ -332,7 +345,7 @@ def _run_numpy(problem, xs, gap_tol, max_iter):
             it -= 1
             break
         est = state.gap_estimate()
-        trace.append((a, sigma, est))
+        trace.append((a, sigma, est, state.f))
         stalled = _stalled(trace, est, gap_tol)
         if est <= CERTIFY_AT * gap_tol or stalled:
             c = problem.certify_best(state.xs, state.Y, state.tau, gap_tol)
@@ -361,7 +374,7 @@ def _run_compiled(problem, xs, gap_tol, max_iter):
     Y = np.ascontiguousarray(st.Y)
     Om = np.ascontiguousarray(st.Om)
     Lam = np.ascontiguousarray(st.Lam)
-    state = np.array([st.nu, st.tau, 0.0, 0.0, 0.0])
+    state = np.array([st.nu, st.tau, 0.0, 0.0, 0.0, 0.0])
     L = np.ascontiguousarray(problem.L)
     a = np.ascontiguousarray(problem.a)
     xf = np.ascontiguousarray(problem.x_floor)
@@ -381,7 +394,7 @@ def _run_compiled(problem, xs, gap_tol, max_iter):
             it -= 1
             break
         est = K["_estimate"](xs, Y, Om, Lam, state[1], L, xf, full, r, b, gap_floor)
-        trace.append((float(state[2]), float(state[3]), float(est)))
+        trace.append((float(state[2]), float(state[3]), float(est), float(state[5])))
         stalled = _stalled(trace, est, gap_tol)
         if est <= CERTIFY_AT * gap_tol or stalled:
             c = problem.certify_best(xs, Y, state[1], gap_tol)
@@ -410,6 +423,7 @@ class _State:
     Lam: np.ndarray
     nu: float
     tau: float
+    f: float = np.nan  # the misfit after the last step
 
     @classmethod
     def initial(cls, p: FractionalProblem, xs):
@@ -563,7 +577,8 @@ class _State:
         self.Lam = Lam + a * dc["dL"]
         self.Om = Om + a * dc["dOm"] - a * a * dc["dY"] @ dc["dY"].T
         self.Y = Y + a * dc["dY"]
-        self.tau = min(self.tau, p.tau_of(p.misfit(self.xs)))
+        self.f = p.misfit(self.xs)
+        self.tau = min(self.tau, p.tau_of(self.f))
         return a, sigma
 
 
