@@ -36,7 +36,7 @@ WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE = 1, 2, 4, 8, 16, 3
 STEP_FRACTION = 0.98  # the numpy path's (ipm.STEP_FRACTION)
 STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3  # ipm.STALL_STEP, ipm.STALL_GAP, ipm.STALL_RUN
 
-_dpotrf = _dtrsv = _spotrf = _strsv = _dsymv = None  # bound to LAPACK/BLAS by kernels()
+_dpotrf = _dtrsv = _spotrf = _strsv = _dsymv = _dsytrd = None  # bound to LAPACK/BLAS by kernels()
 
 
 def available() -> bool:
@@ -45,7 +45,7 @@ def available() -> bool:
 
 
 def _externals():
-    """LAPACK d/spotrf and BLAS d/strsv, dsymv of scipy as numba external functions (symbols
+    """LAPACK d/spotrf, dsytrd and BLAS d/strsv, dsymv of scipy as numba external functions (symbols
     registered with LLVM once per process)."""
     import llvmlite.binding as llb
     from numba import types
@@ -56,7 +56,8 @@ def _externals():
                              ("scipy.linalg.cython_blas", "dtrsv", 8),
                              ("scipy.linalg.cython_lapack", "spotrf", 5),
                              ("scipy.linalg.cython_blas", "strsv", 8),
-                             ("scipy.linalg.cython_blas", "dsymv", 10)):
+                             ("scipy.linalg.cython_blas", "dsymv", 10),
+                             ("scipy.linalg.cython_lapack", "dsytrd", 10)):
         symbol = f"dolfinx_lopinf_{name}"
         llb.add_symbol(symbol, get_cython_function_address(lib, name))
         out[name] = types.ExternalFunction(symbol, types.void(*(types.voidptr,) * nargs))
@@ -314,9 +315,31 @@ def _min_eig(W, dg, e):
         dg[k] = W[k, k]
     if r >= 2:
         e[r - 2] = W[r - 2, r - 1]
-    # the smallest eigenvalue of the tridiagonal: bisection on the Sturm count to 1e-3
-    # relative, then Newton on det(T - x I) from the left end (monotone for a polynomial with
-    # real roots), to rounding
+    return _tridiag_min_eig(dg, e)
+
+
+def _min_eig_lapack(W, dg, e, tau, work, iw, ch):
+    """_min_eig with LAPACK's blocked Householder reduction (dsytrd on the lower triangle of
+    W's F-ordered view - the same symmetric matrix; W overwritten; tau, work: n - 1 and
+    work.size scratch) - 4x faster than _min_eig's loops at n = 80 (it updates only one
+    triangle, in BLAS)."""
+    n = W.shape[0]
+    iw[0] = n
+    iw[1] = n
+    iw[2] = work.shape[0]
+    iw[3] = 0
+    _dsytrd(ch[0:].ctypes, iw[0:].ctypes, W.ctypes, iw[1:].ctypes, dg.ctypes, e.ctypes, tau.ctypes,
+            work.ctypes, iw[2:].ctypes, iw[3:].ctypes)
+    if iw[3] != 0:
+        return np.nan
+    return _tridiag_min_eig(dg, e)
+
+
+def _tridiag_min_eig(dg, e):
+    """The smallest eigenvalue of the symmetric tridiagonal (dg, e): bisection on the Sturm
+    count to 1e-3 relative, then Newton on det(T - x I) from the left end (monotone for a
+    polynomial with real roots), to rounding."""
+    r = dg.shape[0]
     lo, hi, nrm = np.inf, -np.inf, 0.0
     for i in range(r):  # Gershgorin bounds
         rad = (abs(e[i - 1]) if i > 0 else 0.0) + (abs(e[i]) if i < r - 1 else 0.0)
@@ -642,7 +665,9 @@ _SIGNATURES = {
                             f"{_A2}, int32[::1], uint8[::1], {_A1})",
     "_is_pd_shifted": f"boolean({_A2}, float64, {_A2})",
     "_sturm": f"int64({_A1}, {_A1}, float64)",
+    "_tridiag_min_eig": f"float64({_A1}, {_A1})",
     "_min_eig": f"float64({_A2}, {_A1}, {_A1})",
+    "_min_eig_lapack": f"float64({_A2}, {_A1}, {_A1}, {_A1}, {_A1}, int32[::1], uint8[::1])",
     "_max_step": f"float64({_A3}, {_A3}, {_A3}, {_A2}, {_A2}, {_A2}, {_A1}, {_A1})",
     "_iterate": f"int64({_A2}, {_A1}, float64, float64, {_A1}, {_I1}, {_I1}, {_A1}, {_I2}, {_A1}, {_A3}, "
                 f"{_A2}, float32[:, ::1], {_A1}, int64, int64, float64, float64, {_A2}, {_A1})",
@@ -650,11 +675,11 @@ _SIGNATURES = {
               f"{_A1}, {_A3}, {_A3})",
 }
 # the Householder reduction's dot products summed in SIMD lanes (an equally exact order)
-_FASTMATH = {"_min_eig": {"contract", "reassoc"}}
+_FASTMATH = {"_min_eig": {"contract", "reassoc"}, "_tridiag_min_eig": {"contract", "reassoc"}}
 # helpers first: a kernel is compiled against the compiled helpers it calls
 _ORDER = ("_is_pd_shifted", "_chol_inv", "_matmul", "_blocks", "_assemble", "_potrf", "_potrf32",
           "_chol_solve", "_chol_solve32", "_symv", "_direction", "_inverses", "_status",
-          "_factor", "_sturm", "_min_eig", "_max_step", "_predictor_corrector", "_iterate",
+          "_factor", "_sturm", "_tridiag_min_eig", "_min_eig", "_min_eig_lapack", "_max_step", "_predictor_corrector", "_iterate",
           "_start")
 
 
@@ -663,6 +688,7 @@ def _bind_externals():
     ext = _externals()
     g["_dpotrf"], g["_dtrsv"] = ext["dpotrf"], ext["dtrsv"]
     g["_spotrf"], g["_strsv"], g["_dsymv"] = ext["spotrf"], ext["strsv"], ext["dsymv"]
+    g["_dsytrd"] = ext["dsytrd"]
 
 
 # no fast-math: the same operations in the same order as written (FMA contraction aside), like
