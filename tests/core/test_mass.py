@@ -260,6 +260,30 @@ def test_singular_state_covariance_warns_naming_the_dimension_or_raises_with_str
         lo.core.infer_mechanical(*data, mass="learned", strict=True)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_a_refused_certificate_lets_the_iteration_go_on(backend, monkeypatch):
+    """The loop asks for a certificate once the estimate is small; when that certificate
+    fails (here: the first two are made to), the iteration goes on from where it was and
+    certifies later - the state and the step's workspaces untouched by the attempt."""
+    from dolfinx_lopinf.core import compiled
+
+    if backend == "numba" and not compiled.available():
+        pytest.skip("numba unavailable")
+    p = _prepared(2).problem
+    ref = fractional.MassInteriorPoint(backend=backend).solve(p)[3]
+    real, calls = fractional.FractionalProblem.certify_best, []
+
+    def refuse_twice(self, *args):
+        calls.append(1)
+        c = real(self, *args)
+        return dict(c, duality_gap=1.0) if len(calls) <= 2 else c
+
+    monkeypatch.setattr(fractional.FractionalProblem, "certify_best", refuse_twice)
+    cert = fractional.MassInteriorPoint(backend=backend).solve(p)[3]
+    assert ref.converged and cert.converged and cert.details["stopped"] == "certified"
+    assert len(calls) >= 3 and cert.iterations >= ref.iterations + 2
+
+
 def test_a_jam_stops_at_any_level_but_a_plateau_with_a_falling_misfit_does_not():
     """fractional._stalled on traces of (step, sigma, estimate, misfit): the jam of a damped
     fit on near-exact data (the membrane loop at r = 20: centring steps alternating 0.98 /

@@ -387,9 +387,9 @@ def _run_compiled(problem, xs, gap_tol, max_iter):
     gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
     best, best_state, trace, stopped = None, None, [], "max_iter"
     it = 0
-    H, c = np.empty((ix.n, ix.n)), np.empty((ix.n, ix.n))  # the step's workspaces
+    work_H, work_c = np.empty((ix.n, ix.n)), np.empty((ix.n, ix.n))  # the step's workspaces
     for it in range(1, max_iter + 1):
-        K["_step"](xs, Y, Om, Lam, state, L, a, xf, full, iu0, iu1, Dw, r, b, problem.rho, f_floor, H, c)
+        K["_step"](xs, Y, Om, Lam, state, L, a, xf, full, iu0, iu1, Dw, r, b, problem.rho, f_floor, work_H, work_c)
         if state[4] or not np.isfinite(state[2]):
             stopped = f"numerical failure at iteration {it}: Schur matrix not positive definite"
             it -= 1
