@@ -11,12 +11,19 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
 * ``"direct"``: factor A once (MUMPS Cholesky LDL^T; PETSc's own on one rank without MUMPS);
   every step is one forward and one backward substitution through the factor. Per step this
   reads the factor twice - its size, not n, sets the cost; with nested dissection in 3D it
-  grows like n^{4/3} (plus the dense top separator). MUMPS's block low-rank variant
-  (``petsc_options={"mat_mumps_icntl_35": 2, "mat_mumps_cntl_7": eps}``) factors faster, but
-  its approximate factor used as the step's solve shifts the output and, coarse enough, makes
-  the time loop unstable; as CG's preconditioner it cost more per step than the exact factor
-  on the fishtail (measured in the changelog). Nor does a single-precision factor
-  (``pc_precision single``) serve: the fishtail's stiffness contrast puts A beyond float32.
+  grows like n^{4/3} (plus the dense top separator).
+* ``"direct+blr"``: the same with MUMPS's block low-rank factorisation
+  (``mat_mumps_icntl_35`` = 2, dropping threshold ``mat_mumps_cntl_7`` = :data:`BLR_EPSILON`
+  = 1e-10; both can be overridden through ``petsc_options``). The factorisation compresses
+  the off-diagonal blocks of the fronts to that threshold: on the fishtail, 2 ranks, 24.9 s
+  instead of 68.9 s at 392k dofs and 82 s instead of 353 s at 795k, the steps as fast (0.410
+  / 0.896 s against 0.400 / 0.993 s) and the output within 8.6e-8 / 4.0e-6 of the exact
+  factor's (30 steps; measured in the changelog, with the 2,000-step run). Coarser is not
+  safe: with the UCFS variant (``mat_mumps_icntl_36`` = 1) on the 203k-dof mesh the output
+  was 2e-6 off at 1e-10, 23 % off at 1e-8, and at 1e-6 the time loop blew up. Nor does a
+  single-precision factor (``pc_precision single``) serve: the fishtail's stiffness contrast
+  puts A beyond float32. Neither serves as CG's preconditioner either (2-8 iterations of a
+  solve nearly as dear as the exact one; changelog).
 * iterative (``"cg"``, ``"cg+gamg"``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``): a
   Krylov method with a preconditioner of O(n) cost per iteration, **warm-started** from the
   caller's guess (the integrators pass the acceleration, or increment, of the displacement
@@ -28,7 +35,8 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
   ``"cg"`` is ``"cg+gamg"``; ``"cg+pmg"`` is a two-level p-multigrid (Chebyshev-Jacobi
   smoothing on the space, a MUMPS-factored Galerkin coarse problem on the degree-1 Lagrange
   space of the same mesh; the system's space must be Lagrange of degree >= 2).
-* ``"auto"``: ``"direct"`` (the default; :func:`resolve` says why): on every mesh we measured
+* ``"auto"``: ``"direct"``, or ``"direct+blr"`` from :data:`BLR_FROM` = 300k global unknowns
+  (the default; :func:`resolve` says why): on every mesh we measured
   (the fishtail, 46k-795k dofs, 1 and 2 ranks) the factorisation won per step, by 3-4x
   against the best iterative path (``"cg+pmg"``), and by far more against GAMG, Jacobi or
   Chebyshev - the fishtail's A is not mass-dominated (dt^2/4 K dominates M by 1e6-1e7 in the
@@ -65,14 +73,19 @@ fpetsc = dolfinx.fem.petsc
 
 #: solver names and what they are
 SOLVERS = {
-    "auto": "chosen at set-up (resolve(): 'direct' - it won on every mesh measured)",
+    "auto": "chosen at set-up (resolve(): 'direct', or 'direct+blr' from BLR_FROM unknowns)",
     "direct": "MUMPS Cholesky factorisation, one forward/backward substitution per step",
+    "direct+blr": "MUMPS block low-rank Cholesky (dropping threshold BLR_EPSILON): the same "
+                  "substitutions, a 4x faster factorisation on large meshes",
     "cg": "CG + GAMG (same as 'cg+gamg')",
     "cg+gamg": "CG + GAMG smoothed aggregation (rigid-body near-nullspace when given)",
     "cg+pmg": "CG + two-level p-multigrid (Chebyshev-Jacobi smoothing, MUMPS on degree 1)",
     "cg+jacobi": "CG + Jacobi",
     "chebyshev": "Chebyshev iteration + Jacobi (eigenvalue bounds by CG at set-up)",
 }
+#: MUMPS's block low-rank dropping threshold (CNTL(7)) of ``"direct+blr"``
+BLR_EPSILON = 1e-10
+_BLR_OPTIONS = {"mat_mumps_icntl_35": 2, "mat_mumps_cntl_7": BLR_EPSILON}
 #: default tolerance of the iterative solvers, relative to the warm start's initial residual
 RTOL = 1e-3
 #: tolerance (relative to the initial residual) of a solve without the extrapolated warm start
@@ -154,16 +167,25 @@ def check_petsc_options(options) -> dict:
     return dict(options)
 
 
+#: from this many unknowns (global) ``"auto"`` is ``"direct+blr"``
+BLR_FROM = 300_000
+
+
 def resolve(solver: str, n_global: int | None = None) -> str:
     """The solver ``"auto"`` stands for (others are returned as they are; ``"cg"`` as
-    ``"cg+gamg"``). ``"auto"`` is ``"direct"``: measured on the fishtail from 46k to 795k dofs
-    on 1 and 2 ranks, the factorisation's two substitutions per step cost less than the best
-    iterative path (``cg+pmg``, 12 CG iterations per step with the quadratic warm start) at
-    every size; the iterative solvers are there for matrices whose factor does not fit in
-    memory (they hold A, the preconditioner and a few vectors)."""
+    ``"cg+gamg"``). ``"auto"`` is a factorisation: measured on the fishtail from 46k to 795k
+    dofs on 1 and 2 ranks, its two substitutions per step cost less than the best iterative
+    path (``cg+pmg``, 12 CG iterations per step with the quadratic warm start) at every size;
+    the iterative solvers are there for matrices whose factor does not fit in memory (they
+    hold A, the preconditioner and a few vectors). From :data:`BLR_FROM` global unknowns
+    (``n_global``) it is the block low-rank one, ``"direct+blr"``: on the fishtail, 2 ranks,
+    it factored 392k dofs in 24.9 s instead of 68.9 s and 795k dofs in 82 s instead of
+    353 s, at the same cost per step (0.410 / 0.896 s against 0.400 / 0.993 s), the output
+    within 8.6e-8 / 4.0e-6 of the exact factor's over 30 steps. Below it, ``"direct"`` (the
+    gain at 203k dofs, one rank: 22.3 -> 13.4 s, was not worth a changed result)."""
     name = check_solver(solver)
     if name == "auto":
-        return "direct"
+        return "direct+blr" if n_global is not None and n_global >= BLR_FROM else "direct"
     return "cg+gamg" if name == "cg" else name
 
 
@@ -236,7 +258,7 @@ class StepSolver:
     def __init__(self, A, comm, solver: str, prefix: str, petsc_options: dict | None = None, *,
                  V=None, near_nullspace=None):
         self.name = resolve(solver, A.getSize()[0])
-        self.iterative = self.name != "direct"
+        self.iterative = self.name not in ("direct", "direct+blr")
         self.iterations = 0
         self.total_iterations = 0
         self.iteration_history = []
@@ -245,7 +267,8 @@ class StepSolver:
         options = check_petsc_options(petsc_options)
         t0 = time.perf_counter()
         if not self.iterative:
-            self.ksp = direct_ksp(A, comm, prefix, options, spd=True)
+            blr = _BLR_OPTIONS if self.name == "direct+blr" else {}
+            self.ksp = direct_ksp(A, comm, prefix, {**blr, **options}, spd=True)
         else:
             self.ksp = self._iterative(A, comm, prefix, options, V, near_nullspace)
         self.setup_seconds = time.perf_counter() - t0

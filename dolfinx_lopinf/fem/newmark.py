@@ -48,7 +48,8 @@ class NewmarkIntegrator(_Closing):
         input_forms: linear forms b_j(v), one per input channel.
         solver: a name of :data:`dolfinx_lopinf.fem.linsolve.SOLVERS`: ``"auto"`` (default,
             :func:`~dolfinx_lopinf.fem.linsolve.resolve`), ``"direct"`` (MUMPS Cholesky of A,
-            factored once) or an iterative one (``"cg"`` = ``"cg+gamg"`` with
+            factored once), ``"direct+blr"`` (its block low-rank variant: a faster
+            factorisation on large meshes) or an iterative one (``"cg"`` = ``"cg+gamg"`` with
             ``near_nullspace``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``), warm-started
             from the displacement extrapolated over the last three steps and stopped at a
             tolerance tied to the truncation error (see :mod:`~dolfinx_lopinf.fem.linsolve`).
