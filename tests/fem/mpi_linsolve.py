@@ -77,7 +77,7 @@ if __name__ == "__main__":
     system, load, E = build(comm)
     smap = StateMap.from_coordinates(system.V)
     out = {}
-    for solver in ("direct",) + ITERATIVE:
+    for solver in ("direct", "direct+blr") + ITERATIVE:
         Y, q, _ = newmark(system, load, E, solver)
         out[f"newmark_Y_{solver}"] = Y
         out[f"newmark_q_{solver}"] = gather_states(system.V, q[:, None], smap)
