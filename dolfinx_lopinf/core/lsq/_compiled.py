@@ -330,8 +330,8 @@ def _min_eig_lapack(W, dg, e, tau, work, iw, ch):
     iw[3] = 0
     _dsytrd(ch[0:].ctypes, iw[0:].ctypes, W.ctypes, iw[1:].ctypes, dg.ctypes, e.ctypes, tau.ctypes,
             work.ctypes, iw[2:].ctypes, iw[3:].ctypes)
-    if iw[3] != 0:
-        return np.nan
+    if iw[3] != 0:  # an argument refused (dsytrd returns before touching W): the loops' reduction
+        return _min_eig(W, dg, e)
     return _tridiag_min_eig(dg, e)
 
 

@@ -33,7 +33,7 @@ from .. import compiled as _jit
 
 STEP_FRACTION = 0.98  # fractional.STEP_FRACTION
 SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)  # fractional.SHIFTS
-_potrf = _cs = _chol_inv = _pd = _min_eig = _min_eig_loops = None  # lsq._compiled's kernels, bound by kernels()
+_potrf = _cs = _chol_inv = _pd = _min_eig = None  # lsq._compiled's kernels, bound by kernels()
 
 # --------------------------------------------------------------------------------------------
 # Kernel source (plain Python; compiled by kernels())
@@ -194,8 +194,6 @@ def _pencil(A):
     ch = np.array([76, 78, 84], dtype=np.uint8)
     ev = _min_eig(A.copy(), np.empty(q), np.empty(max(q - 1, 1)), np.empty(max(q - 1, 1)),
                   np.empty(64 * q), iw, ch)
-    if not np.isfinite(ev):  # dsytrd refused (not expected): the loops' reduction
-        ev = _min_eig_loops(A.copy(), np.empty(q), np.empty(max(q - 1, 1)))
     return 1.0 if ev >= 0 else min(1.0, -1.0 / ev)
 
 
@@ -461,8 +459,7 @@ def _bind_helpers():
     g = globals()
     ipm = _compiled.kernels()  # LAPACK dpotrf / BLAS dtrsv bound and compiled there
     g["_potrf"], g["_cs"] = ipm["_potrf"], ipm["_chol_solve"]
-    g["_chol_inv"], g["_pd"] = ipm["_chol_inv"], ipm["_is_pd_shifted"]
-    g["_min_eig"], g["_min_eig_loops"] = ipm["_min_eig_lapack"], ipm["_min_eig"]
+    g["_chol_inv"], g["_pd"], g["_min_eig"] = ipm["_chol_inv"], ipm["_is_pd_shifted"], ipm["_min_eig_lapack"]
     for name in _HELPERS:
         g[name] = njit(cache=True, error_model="numpy")(getattr(g[name], "py_func", g[name]))
 
