@@ -482,3 +482,30 @@ def test_the_compensated_product_is_exact_where_extended_precision_is_not():
     assert np.abs(hi + lo - exact).max() <= 1e-12 * np.abs(exact).max()
     G, err = fractional_bound._sym2(hi, lo, bound)
     assert np.all(np.abs(G - 0.5 * (exact + exact.T)) <= err)
+
+
+def test_the_certificates_compiled_loops_are_its_numpy_arithmetic():
+    """The certificate's compensated product and nu bisection run compiled once the learned-mass
+    kernels are loaded: bit for bit the numpy results (graded data over 16 orders, r = 1..40,
+    numpy's pairwise order of the sums), so which path certified a fit cannot change its
+    verdict."""
+    from dolfinx_lopinf.core import compiled
+    from dolfinx_lopinf.core.lsq import _fractional_compiled as fc
+
+    if not compiled.available():
+        pytest.skip("numba unavailable")
+    kernels = fc.kernels()
+    rng = np.random.default_rng(3)
+    for _ in range(60):
+        r, b = int(rng.integers(1, 41)), int(rng.integers(2, 4))
+        A = rng.standard_normal((r, b * r)) * 10.0 ** rng.uniform(-8, 8, (1, b * r))
+        B = rng.standard_normal(((b - 1) * r, b * r)) * 10.0 ** rng.uniform(-8, 8, ((b - 1) * r, 1))
+        s, e = np.zeros((r, (b - 1) * r)), np.zeros((r, (b - 1) * r))
+        kernels["_dot2_loops"](A, B, s, e)
+        with pytest.MonkeyPatch.context() as mp:  # the numpy path: as if nothing were loaded
+            mp.setattr(fractional_bound, "_loaded_kernels", lambda: None)
+            hi, lo_, _ = fractional_bound._dot2(A, B)
+        assert np.array_equal(s, hi) and np.array_equal(e, lo_)
+        lam = np.sort(rng.standard_normal(r) * 10.0 ** rng.uniform(-6, 6, r))
+        tau, c = 10.0 ** rng.uniform(-12, 0), 10.0 ** rng.uniform(-3, 3)
+        assert kernels["_best_nu_loops"](lam, tau, c) == fractional_bound._best_nu_numpy(lam, tau, c)

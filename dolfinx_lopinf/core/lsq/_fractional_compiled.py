@@ -437,16 +437,94 @@ def _estimate(xs, Y, Om, Lam, tau, L, x_floor, full, r, b, f_floor):
         / max(f, f_floor, 1e-300)
 
 
+
+# the certificate's loops (:mod:`.fractional_bound`: _dot2, _best_nu; numpy / interpreted there
+# when these are not loaded, the same arithmetic): no FMA contraction - Dekker's split products
+# need each product rounded
+
+
+def _dot2_loops(A, B, s, e):
+    """s + e = A @ B^T by :func:`_dot2`'s arithmetic entry by entry, into zeroed s, e."""
+    split = 134217729.0  # 2^27 + 1
+    ra, rb, p = A.shape[0], B.shape[0], A.shape[1]
+    for i in range(ra):
+        for k in range(rb):
+            si, ei = 0.0, 0.0
+            for j in range(p):
+                a, bj = A[i, j], B[k, j]
+                ca, cb = split * a, split * bj
+                ah = ca - (ca - a)
+                bh = cb - (cb - bj)
+                al, bl = a - ah, bj - bh
+                prod = a * bj
+                perr = ((ah * bh - prod) + ah * bl + al * bh) + al * bl
+                t = si + prod
+                z = t - si
+                ei += ((si - (t - z)) + (prod - z)) + perr
+                si = t
+            s[i, k] = si
+            e[i, k] = ei
+
+
+def _pairwise_sum(x, n):
+    """sum(x[:n]) in numpy's order for contiguous float64 up to n = 128 (its pairwise_sum: a
+    plain loop below 8 entries, else eight interleaved accumulators combined as a tree, then
+    the tail; longer arrays are split in halves there, not here - the caller keeps n <= 128)."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += x[i]
+        return res
+    a0, a1, a2, a3, a4, a5, a6, a7 = x[0], x[1], x[2], x[3], x[4], x[5], x[6], x[7]
+    i = 8
+    while i < n - n % 8:
+        a0 += x[i]
+        a1 += x[i + 1]
+        a2 += x[i + 2]
+        a3 += x[i + 3]
+        a4 += x[i + 4]
+        a5 += x[i + 5]
+        a6 += x[i + 6]
+        a7 += x[i + 7]
+        i += 8
+    res = ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7))
+    while i < n:
+        res += x[i]
+        i += 1
+    return res
+
+
+def _best_nu_loops(lam, tau, c):
+    """fractional_bound._best_nu_numpy in loops (r <= 128: the sums in numpy's order)."""
+    r = lam.shape[0]
+    lo, hi = tau / c, tau * r / c  # d: the root lies between (one term alone / all r equal)
+    buf = np.empty(r)
+    for _ in range(200):
+        mid = np.sqrt(lo * hi) if lo > 0 else 0.5 * (lo + hi)
+        for i in range(r):
+            buf[i] = 1.0 / (lam[i] - lam[0] + mid)
+        if tau * _pairwise_sum(buf, r) > c:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-15 * hi:
+            break
+    return lam[0] - hi
+
+
 _A1, _A2, _A3 = "float64[::1]", "float64[:, ::1]", "float64[:, :, ::1]"
 _I1, _I2 = "int64[::1]", "int64[:, ::1]"
 _SIGNATURES = {
     "_step": f"void({_A1}, {_A2}, {_A2}, {_A3}, {_A1}, {_A2}, {_A1}, {_A1}, {_I2}, {_I1}, {_I1}, {_A1}, "
              f"int64, int64, float64, float64, {_A2}, {_A2})",
     "_estimate": f"float64({_A1}, {_A2}, {_A2}, {_A3}, float64, {_A2}, {_A1}, {_I2}, int64, int64, float64)",
+    "_dot2_loops": f"void({_A2}, {_A2}, {_A2}, {_A2})",
+    "_best_nu_loops": f"float64({_A1}, float64, float64)",
 }
 # helpers are plain functions numba compiles inline with their callers (njit on first use)
 _HELPERS = ("_sym", "_theta", "_vech_blocks", "_blocks", "_kernel_block", "_schur", "_lin_parts",
-            "_chol_solve", "_inv_chol", "_spd_inv", "_pencil", "_direction", "_steps", "_equilibrate")
+            "_chol_solve", "_inv_chol", "_spd_inv", "_pencil", "_direction", "_steps", "_equilibrate",
+            "_pairwise_sum")
 
 
 def _bind_helpers():
@@ -464,7 +542,8 @@ def _bind_helpers():
         g[name] = njit(cache=True, error_model="numpy")(getattr(g[name], "py_func", g[name]))
 
 
-_KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate"), before=_bind_helpers,
+_KERNELS = _jit.KernelSet(globals(), _SIGNATURES, order=("_step", "_estimate", "_dot2_loops", "_best_nu_loops"),
+                          fastmath={"_dot2_loops": set(), "_best_nu_loops": set()}, before=_bind_helpers,
                           unavailable="the compiled learned-mass interior point is unavailable")
 
 
@@ -476,6 +555,11 @@ def kernels() -> dict:
     """The compiled kernels (compiled, or loaded from numba's cache, on the first call; a
     background build under way is waited for)."""
     return _KERNELS.kernels()  # waits for a background build (compiled.BUILD_LOCK)
+
+
+def loaded() -> dict | None:
+    """The kernels if this process has built or loaded them, else None (never builds)."""
+    return _KERNELS._kernels
 
 
 def warm_up() -> float | None:

@@ -60,8 +60,16 @@ def _repair(Y, L, r, b):
 def _dot2(A, B):
     """A @ B^T as an unevaluated sum hi + lo and a bound on its error, by the compensated dot
     product (Ogita, Rump and Oishi's Dot2: Dekker's exact products, Knuth's exact sums) - as
-    if computed in twice the working precision: |hi + lo - A B^T| <= (p u)^2 |A| |B|^T."""
+    if computed in twice the working precision: |hi + lo - A B^T| <= (p u)^2 |A| |B|^T.
+    The compiled ``_fractional_compiled._dot2_loops`` when the learned-mass kernels are loaded (the same
+    operations on each entry: bit for bit the same sums), else numpy over whole columns."""
     u = np.finfo(float).eps / 2
+    kernels = _loaded_kernels()
+    if kernels is not None:
+        A, B = np.ascontiguousarray(A, dtype=float), np.ascontiguousarray(B, dtype=float)
+        s, e = np.zeros((A.shape[0], B.shape[0])), np.zeros((A.shape[0], B.shape[0]))
+        kernels["_dot2_loops"](A, B, s, e)
+        return s, e, (2.0 * A.shape[1] * u) ** 2 * (np.abs(A) @ np.abs(B).T)
     split = 134217729.0  # 2^27 + 1
 
     def halves(x):
@@ -184,6 +192,15 @@ def _maximise_nu(A, W, tau, cc, nu0):
 
 
 def _best_nu(lam, tau, c) -> float:
+    """:func:`_best_nu_numpy`, by the compiled ``_best_nu_loops`` when the learned-mass kernels
+    are loaded (the same arithmetic, bit for bit; r <= 128)."""
+    kernels = _loaded_kernels()
+    if kernels is None or len(lam) > 128:
+        return _best_nu_numpy(lam, tau, c)
+    return float(kernels["_best_nu_loops"](np.ascontiguousarray(lam, dtype=float), float(tau), float(c)))
+
+
+def _best_nu_numpy(lam, tau, c) -> float:
     """argmax over nu < lam_min of c nu + tau sum log(lam_i - nu): c = tau sum 1/(lam_i - nu),
     by bisection on d = lam_min - nu in [tau / c, tau r / c] (the sum is monotone in nu)."""
     r = len(lam)
@@ -197,3 +214,11 @@ def _best_nu(lam, tau, c) -> float:
         if hi - lo <= 1e-15 * hi:
             break
     return float(lam[0] - hi)
+
+
+def _loaded_kernels():
+    """The compiled learned-mass kernels if this process has them loaded, else None (never
+    compiles: the certificate is not worth a build)."""
+    from . import _fractional_compiled
+
+    return _fractional_compiled.loaded()
