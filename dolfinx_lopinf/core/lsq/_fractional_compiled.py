@@ -407,6 +407,11 @@ def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f
     for k in range(b):
         Lam[k] += al * dL[k]
     Om += al * dOm - al * al * np.dot(dY, dY.T)
+    for i in range(r):  # exactly symmetric (fractional._State.step)
+        for j in range(i + 1, r):
+            v = 0.5 * (Om[i, j] + Om[j, i])
+            Om[i, j] = v
+            Om[j, i] = v
     Y += al * dY
     th = _theta(xs + x_floor, full, r, b)
     M = np.ascontiguousarray(th[:, :r])
