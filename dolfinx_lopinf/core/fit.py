@@ -46,8 +46,7 @@ from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
 from .basis import Basis, from_svd, leading_svd, pod
 from ._checks import as_real_array
-from ..errors import (FileFormatError, InputError, SchemeMismatchWarning, SolverFailedError,
-                      SolverWarning, warn)
+from ..errors import (FileFormatError, InputError, SchemeMismatchWarning, warn)
 from .identify import (CLEAR_GAIN, REFINEMENT_GAIN, RESIDUAL_FLOOR, SHORTLIST, Residual, identify,
                        standard_members)
 from ._blas import serial_blas
@@ -252,11 +251,15 @@ def _stacked(parts):
     return Qk, Qc, Qm, Uf
 
 
-def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity", solver="auto"):
-    """L-OpInf on the stacked relation data of several trajectories."""
+def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity", solver="auto",
+                  raise_ridge=False):
+    """L-OpInf on the stacked relation data of several trajectories (``raise_ridge``: as in
+    :func:`~dolfinx_lopinf.core.infer_mechanical` - the final fit only; the candidates keep
+    their first fit)."""
     Qk, Qc, Qm, Uf = _stacked([_relation_data(scheme, p) for p in pieces])
     return infer_mechanical(Qk, Qc if damping else None, Qm, Uf, damping=damping, eps=eps,
-                            ridge=ridge, strict=strict, mass=mass, solver=solver)
+                            ridge=ridge, strict=strict, mass=mass, solver=solver,
+                            raise_ridge=raise_ridge)
 
 
 def _relation_data(scheme, piece):
@@ -480,7 +483,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         chosen = order[0]
         report["why"] = "mass, damping and scheme given: nothing to compare"
     mass, damping, relation = chosen
-    ops = _final_fit(relation, pieces, damping, eps, ridge, strict, mass)
+    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass, raise_ridge=True)
     E = None
     if trajs[0].Y is not None:
         E = infer_output(np.hstack([p[0] for p in pieces]), np.hstack([s.Y for s in trajs]))
@@ -491,57 +494,6 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     rom = LagrangianROM(K=ops.K, M=ops.M, C=ops.C, B=ops.B, E=E, scheme=rom_scheme,
                         meta={"method": "lopinf", "fit_scheme": relation.spec})
     return ReducedModel(rom, basis, relation, dt, report)
-
-
-#: an uncertified learned-mass fit at the default ridge is tried again with the ridge raised
-#: by these factors (the directions the data do not determine are then fixed by the ridge
-#: instead of by rounding, and the interior point can close its gap); the first certified
-#: one is kept, with a warning naming the ridge
-RIDGE_STEPS = (10.0, 100.0, 1000.0)
-
-
-def _final_fit(relation, pieces, damping, eps, ridge, strict, mass):
-    """The chosen candidate on all the data. A learned-mass fit that the interior point leaves
-    uncertified at the default ridge is refitted with the ridge raised (RIDGE_STEPS): its
-    certificate is for the problem with that ridge, which the warning and
-    ``certificate["ridge"]`` name. Otherwise (or when none certifies) as :func:`_fit_relation`."""
-    if mass != "learned" or ridge != RIDGE:
-        return _fit_relation(relation, pieces, damping, eps, ridge, strict, mass)
-    with warnings.catch_warnings(record=True) as first_warnings:
-        warnings.simplefilter("always")
-        try:
-            ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass)
-            failure = None
-        except SolverFailedError as exc:  # strict=True and not certified
-            ops, failure = None, exc
-    if ops is not None and ops.certificate.get("certified"):
-        _replay(first_warnings)
-        return ops
-    gap = ops.certificate.get("duality_gap") if ops is not None else None
-    for factor in RIDGE_STEPS:
-        with warnings.catch_warnings(record=True) as trial_warnings:
-            warnings.simplefilter("always")
-            try:
-                trial = _fit_relation(relation, pieces, damping, eps, ridge * factor, strict, mass)
-            except SolverFailedError:
-                continue
-        if trial.certificate.get("certified"):
-            _replay([w for w in trial_warnings if not issubclass(w.category, SolverWarning)])
-            trial.certificate["ridge"] = float(f"{ridge * factor:.6g}")
-            warn(f"learned-mass fit: not certified with the ridge {ridge:g} * sigma_1 (duality gap "
-                 f"{gap if gap is not None else float('nan'):.2e}); certified with {ridge * factor:g} "
-                 "* sigma_1 - the directions the data barely determine are fixed by the ridge "
-                 "(towards zero). Pass ridge= to choose it yourself", SolverWarning)
-            return trial
-    if failure is not None:
-        raise failure
-    _replay(first_warnings)
-    return ops
-
-
-def _replay(records):
-    for w in records:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _pieces(trajs, P, weight=None):

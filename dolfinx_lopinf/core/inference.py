@@ -95,7 +95,8 @@ def _check_solver(solver):
 @serial_blas
 def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool = True,
                      solver: str | lsq.Strategy = "auto", ridge: float = RIDGE,
-                     strict: bool = False, mass: str = "identity") -> MechanicalOperators:
+                     strict: bool = False, mass: str = "identity",
+                     raise_ridge: bool = True) -> MechanicalOperators:
     """L-OpInf for Mh qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I and
     Mh = I (``mass="identity"``) or learned too (``mass="learned"``, :mod:`dolfinx_lopinf.core.mass`).
 
@@ -122,6 +123,12 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             (Mh symmetric positive definite, fitted with the others by a convex problem
             whose answer does not depend on the coordinates of the reduced space - use it
             in a Euclidean, black-box basis).
+        raise_ridge: ``mass="learned"`` at the default ridge only: a fit the interior point
+            leaves uncertified is refitted with the ridge raised by :data:`RIDGE_STEPS` and
+            the first certified one is returned, with a
+            :class:`~dolfinx_lopinf.errors.SolverWarning` and ``certificate["ridge"]`` naming
+            the ridge (its certificate is for that problem); when none certifies, the first
+            fit as it was. ``False``: the first fit only.
 
     Returns:
         :class:`MechanicalOperators` with a certificate; warns if the solver did not reach
@@ -142,11 +149,14 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise InputError(f"mass must be 'identity' or 'learned', got {mass!r}")
     (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
     if mass == "learned":
-        from .mass import infer_with_mass
+        def fit(ridge_used):
+            from .mass import infer_with_mass
 
-        ops = infer_with_mass(Qh, dQh if damping else None, ddQh, U, damping=damping, eps=eps,
-                              ridge=ridge, strict=strict, solver=solver)
-        return _unscaled(ops, c_state, c_input)
+            return infer_with_mass(Qh, dQh if damping else None, ddQh, U, damping=damping,
+                                   eps=eps, ridge=ridge_used, strict=strict, solver=solver)
+
+        retry = raise_ridge and ridge == RIDGE and solver == "auto"
+        return _unscaled(_certified_by_ridge(fit, ridge) if retry else fit(ridge), c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
     named = solver if isinstance(solver, str) else None
@@ -167,6 +177,54 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
                                 f"{c.get('duality_gap', float('nan')):.2e}, status {c['status']}); "
                                 "strict=True asks for an error instead of an uncertified model")
     return _unscaled(ops, c_state, c_input)
+
+
+#: a learned-mass fit left uncertified at the default ridge is tried again with the ridge raised
+#: by these factors (the directions the data barely determine are then fixed by the ridge
+#: instead of by rounding, and the interior point can close its gap); the first certified
+#: one is kept, with a warning naming the ridge
+RIDGE_STEPS = (10.0, 100.0, 1000.0)
+
+
+def _certified_by_ridge(fit, ridge):
+    """``fit(ridge)``, and if not certified ``fit(ridge * f)`` for f in RIDGE_STEPS: the first
+    certified fit (warning, ``certificate["ridge"]``), else the first as it was (its warnings,
+    or its SolverFailedError under strict=True)."""
+    with warnings.catch_warnings(record=True) as first_warnings:
+        warnings.simplefilter("always")
+        try:
+            ops, failure = fit(ridge), None
+        except SolverFailedError as exc:  # strict=True and not certified
+            ops, failure = None, exc
+    if ops is not None and ops.certificate.get("certified"):
+        _replay(first_warnings)
+        return ops
+    gap = ops.certificate.get("duality_gap") if ops is not None else None
+    for factor in RIDGE_STEPS:
+        with warnings.catch_warnings(record=True) as trial_warnings:
+            warnings.simplefilter("always")
+            try:
+                trial = fit(ridge * factor)
+            except SolverFailedError:
+                continue
+        if trial.certificate.get("certified"):
+            _replay([w for w in trial_warnings if not issubclass(w.category, SolverWarning)])
+            trial.certificate["ridge"] = float(f"{ridge * factor:.6g}")
+            warnings.warn(f"learned-mass fit: not certified with the ridge {ridge:g} * sigma_1 "
+                          f"(duality gap {gap if gap is not None else float('nan'):.2e}); certified "
+                          f"with {ridge * factor:g} * sigma_1 - the directions the data barely "
+                          "determine are fixed by the ridge (towards zero). Pass ridge= to choose "
+                          "it yourself", SolverWarning, stacklevel=4)
+            return trial
+    if failure is not None:
+        raise failure
+    _replay(first_warnings)
+    return ops
+
+
+def _replay(records):
+    for w in records:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _is_auto(solver) -> bool:

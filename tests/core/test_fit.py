@@ -170,49 +170,54 @@ def test_auto_keeps_the_loops_own_scheme_where_closure_favours_a_dissipative_one
 
 
 def test_an_uncertified_learned_mass_fit_is_refitted_with_a_larger_ridge(monkeypatch):
-    """lo.fit's final learned-mass fit: uncertified at the default ridge -> the ridge raised
-    10x, 100x, 1000x until certified; that fit is returned, its certificate names the ridge
-    and a SolverWarning says so. None certified: the first fit and its own warnings (strict:
-    its SolverFailedError). A user's ridge or Mh = I is never changed."""
+    """infer_mechanical(mass="learned") - lo.fit's final fit and a user's call alike: uncertified
+    at the default ridge -> the ridge raised 10x, 100x, 1000x until certified; that fit is
+    returned, its certificate names the ridge and a SolverWarning says so. None certified: the
+    first fit and its own warnings (strict: its SolverFailedError). A user's ridge,
+    raise_ridge=False (lo.fit's candidates) and Mh = I are never refitted."""
     import importlib
 
+    from dolfinx_lopinf.core import mass as mass_module
     from dolfinx_lopinf.core.gram import MechanicalOperators
     from dolfinx_lopinf.errors import SolverFailedError, SolverWarning
 
-    F = importlib.import_module("dolfinx_lopinf.core.fit")
-    ridge0 = F.RIDGE
+    inference = importlib.import_module("dolfinx_lopinf.core.inference")
+    ridge0 = inference.RIDGE
     calls = []
 
     def fake(certified_from):
-        def fit_relation(relation, pieces, damping, eps, ridge, strict, mass):
+        def infer_with_mass(Qh, dQh, ddQh, U, *, ridge, strict, **kwargs):
             calls.append(ridge)
             ok = ridge >= certified_from * (1 - 1e-12)
             if not ok:
                 if strict:
                     raise SolverFailedError("not certified")
                 warnings.warn("learned-mass fit not certified", SolverWarning, stacklevel=2)
-            return MechanicalOperators(K=np.eye(2), C=None, B=None,
+            return MechanicalOperators(K=np.eye(2), C=None, B=None, M=np.eye(2),
                                        certificate={"certified": ok, "duality_gap": 0.0 if ok else 1e-5})
-        return fit_relation
+        return infer_with_mass
 
-    monkeypatch.setattr(F, "_fit_relation", fake(100 * ridge0))
+    rng = np.random.default_rng(0)
+    Q, ddQ = rng.standard_normal((2, 50)), rng.standard_normal((2, 50))
+    fit = lambda **kw: lo.core.infer_mechanical(Q, None, ddQ, damping=False, mass="learned", **kw)  # noqa: E731
+    monkeypatch.setattr(mass_module, "infer_with_mass", fake(100 * ridge0))
     with pytest.warns(SolverWarning, match="certified with 1e-07"):
-        ops = F._final_fit("newmark", [], True, 1e-8, ridge0, False, "learned")
+        ops = fit()
     assert ops.certificate["certified"] and ops.certificate["ridge"] == pytest.approx(100 * ridge0)
     assert calls == pytest.approx([ridge0, 10 * ridge0, 100 * ridge0])
 
     calls.clear()
-    monkeypatch.setattr(F, "_fit_relation", fake(np.inf))
+    monkeypatch.setattr(mass_module, "infer_with_mass", fake(np.inf))
     with pytest.warns(SolverWarning, match="learned-mass fit not certified"):
-        ops = F._final_fit("newmark", [], True, 1e-8, ridge0, False, "learned")
+        ops = fit()
     assert not ops.certificate["certified"] and "ridge" not in ops.certificate and len(calls) == 4
     with pytest.raises(SolverFailedError):
-        F._final_fit("newmark", [], True, 1e-8, ridge0, True, "learned")
+        fit(strict=True)
 
     calls.clear()
     with pytest.warns(SolverWarning):
-        F._final_fit("newmark", [], True, 1e-8, 1e-7, False, "learned")  # the user's ridge
-        F._final_fit("newmark", [], True, 1e-8, ridge0, False, "identity")
+        fit(ridge=1e-7)  # the user's ridge
+        fit(raise_ridge=False)  # lo.fit's candidates
     assert calls == [1e-7, ridge0]
 
 
