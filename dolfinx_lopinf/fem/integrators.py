@@ -192,9 +192,11 @@ class MidpointIntegrator(_Closing):
             ``<prefix>``) or for SNES (nonlinear case).
         solver: the linear case's solver, a name of
             :data:`dolfinx_lopinf.fem.linsolve.SOLVERS` (``"auto"``: MUMPS LU of the step
-            Jacobian; an iterative one works on its negative, M/dt + dt/4 K, which is SPD,
-            warm-started from the extrapolated displacement). Newton (SNES) steps keep their
-            direct solve: only ``"auto"`` or ``"direct"`` there (KSP/PC via petsc_options).
+            Jacobian, or from :data:`~dolfinx_lopinf.fem.linsolve.BLR_FROM` global unknowns
+            MUMPS's block low-rank Cholesky of its negative, ``"direct+blr"``; the iterative
+            ones work on that negative, M/dt + dt/4 K, which is SPD, warm-started from the
+            extrapolated displacement). Newton (SNES) steps keep their direct solve: only
+            ``"auto"`` or ``"direct"`` there (KSP/PC via petsc_options).
         prefix: PETSc options prefix (default: ``lopinf_midpoint_<n>_``, unique per
             integrator). The options are removed from the global database once read.
 
@@ -212,7 +214,10 @@ class MidpointIntegrator(_Closing):
         V, comm = system.V, system.V.mesh.comm
 
         def local():
-            name = linsolve.resolve(solver)
+            # "auto" from the problem's size, as Newmark's (the linear case's factor: MUMPS's
+            # block low-rank Cholesky of -A1 from BLR_FROM unknowns); Newton steps stay direct
+            n_global = V.dofmap.index_map.size_global * V.dofmap.index_map_bs
+            name = linsolve.resolve(solver, n_global if system.is_quadratic else None)
             if name != "direct" and not system.is_quadratic:
                 raise InputError(f"solver={solver!r}: the nonlinear (Newton, PETSc SNES) midpoint step "
                                  "keeps its direct solve; choose 'auto' or 'direct' and set the "

@@ -111,6 +111,31 @@ def test_block_low_rank_factorisation_is_mumps_blr_and_gives_the_direct_answer(s
     M.destroy()
 
 
+def test_midpoint_auto_takes_the_block_low_rank_factor_from_blr_from_unknowns(system, monkeypatch):
+    """The midpoint rule's ``auto`` resolves from the problem's size like Newmark's: with the
+    threshold below this bar's size, the linear step is the block low-rank Cholesky of -A1
+    (the exact factor's trajectory, to 1e-9 on this small bar), and a Newton step stays
+    direct."""
+    q_ref = bar.midpoint(system[0], "direct")
+    monkeypatch.setattr(linsolve, "BLR_FROM", 1)
+    sysm = system[0]
+    integ = MidpointIntegrator(sysm, bar.DT)
+    try:
+        assert integ.solver is not None and integ.solver.name == "direct+blr"
+    finally:
+        integ.close()
+    q = bar.midpoint(sysm, "auto")
+    assert _rel(q, q_ref) < 1e-9, _rel(q, q_ref)
+    small, _, _ = bar.build(n=(2, 1, 1))
+    nonlinear = LagrangianSystem(small.lagrangian - 0.25 * ufl.inner(small.q, small.q) ** 2 * ufl.dx,
+                                 small.q, small.q_t, bcs=small.bcs)
+    integ = MidpointIntegrator(nonlinear, bar.DT)
+    try:
+        assert integ.solver is None  # SNES with its own direct solve
+    finally:
+        integ.close()
+
+
 @pytest.mark.parametrize("bad", ["mumps", "gmres", "cg+hypre", "", None, 3])
 def test_bad_solver_names_are_refused(system, bad):
     sysm, load, _ = system
