@@ -442,14 +442,13 @@ def _estimate(xs, Y, Om, Lam, tau, L, x_floor, full, r, b, f_floor):
         / max(f, f_floor, 1e-300)
 
 
-
 # the certificate's loops (:mod:`.fractional_bound`: _dot2, _best_nu; numpy / interpreted there
 # when these are not loaded, the same arithmetic): no FMA contraction - Dekker's split products
 # need each product rounded
 
 
 def _dot2_loops(A, B, s, e):
-    """s + e = A @ B^T by :func:`_dot2`'s arithmetic entry by entry, into zeroed s, e."""
+    """s + e = A @ B^T by fractional_bound._dot2's arithmetic entry by entry, into zeroed s, e."""
     split = 134217729.0  # 2^27 + 1
     ra, rb, p = A.shape[0], B.shape[0], A.shape[1]
     for i in range(ra):

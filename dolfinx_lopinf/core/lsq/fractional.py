@@ -43,7 +43,7 @@ steps of Lambda_k are symmetric, so an antisymmetric part of rounding size would
 while Lambda_k itself falls by ten orders or more on the inactive floors, until it is larger
 than their small eigenvalues - and the Cholesky factors and pencils read one triangle. Measured
 on the 64 learned-mass problems lo.fit poses on five held-out loop recordings and the 15
-benchmark problems, each also with L perturbed at 1e-15 (four copies, compiled path):
+benchmark problems, each as posed and with L perturbed at 1e-15 (three copies; compiled path):
 certified 259 -> 289 of 316; one benchmark set went the other way (near-exact beam data, r = 8:
 3 -> 1 of 4).
 
