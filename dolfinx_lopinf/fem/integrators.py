@@ -279,7 +279,8 @@ class MidpointIntegrator(_Closing):
             self.solver = linsolve.StepSolver(self._A1, comm, self._solver_name, self.prefix,
                                               options, V=V)
             self._ksp = self.solver.ksp
-            self._history = [fpetsc.create_vector(V) for _ in range(3)]
+            if self.solver.iterative:  # a factor ("direct+blr") takes no warm start
+                self._history = [fpetsc.create_vector(V) for _ in range(3)]
         self._n_history = 0
         self._rhs = fpetsc.create_vector(V)
         self._dq = fpetsc.create_vector(V)
@@ -463,9 +464,10 @@ class MidpointIntegrator(_Closing):
                 self._ksp.solve(rhs, dq)
                 reason = self._ksp.getConvergedReason()
                 failure = f"KSP reason {reason}"
-            else:  # (-A1) dq = R + p, warm-started
+            else:  # (-A1) dq = R + p (the iterative solvers warm-started)
                 fpetsc.set_bc(rhs, self._bcs)
-                reason = self.solver.solve(rhs, dq, extrapolated=self._warm_start(dq))
+                warm = self._warm_start(dq) if self._history else False
+                reason = self.solver.solve(rhs, dq, extrapolated=warm)
                 failure = self.solver.describe_failure(reason) if reason <= 0 else ""
                 fpetsc.set_bc(dq, self._bcs)  # the constrained rows exactly
             if reason <= 0:

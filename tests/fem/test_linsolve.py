@@ -126,10 +126,7 @@ def test_midpoint_auto_takes_the_block_low_rank_factor_from_blr_from_unknowns(sy
         integ.close()
     q = bar.midpoint(sysm, "auto")
     assert _rel(q, q_ref) < 1e-9, _rel(q, q_ref)
-    small, _, _ = bar.build(n=(2, 1, 1))
-    nonlinear = LagrangianSystem(small.lagrangian - 0.25 * ufl.inner(small.q, small.q) ** 2 * ufl.dx,
-                                 small.q, small.q_t, bcs=small.bcs)
-    integ = MidpointIntegrator(nonlinear, bar.DT)
+    integ = MidpointIntegrator(_nonlinear_bar(), bar.DT)
     try:
         assert integ.solver is None  # SNES with its own direct solve
     finally:
@@ -163,11 +160,17 @@ def test_pmg_needs_a_higher_degree_space():
         NewmarkIntegrator(sysm, bar.DT, input_forms=load, solver="cg+pmg")
 
 
-def test_newton_steps_keep_the_direct_solve():
+def _nonlinear_bar():
+    """A small bar with a quartic potential added: a Lagrangian the midpoint rule steps by
+    Newton (SNES)."""
     sysm, _, _ = bar.build(n=(2, 1, 1))
     q, q_t = sysm.q, sysm.q_t
-    nonlinear = LagrangianSystem(sysm.lagrangian - 0.25 * ufl.inner(q, q) ** 2 * ufl.dx, q, q_t,
-                                 bcs=sysm.bcs)
+    return LagrangianSystem(sysm.lagrangian - 0.25 * ufl.inner(q, q) ** 2 * ufl.dx, q, q_t,
+                            bcs=sysm.bcs)
+
+
+def test_newton_steps_keep_the_direct_solve():
+    nonlinear = _nonlinear_bar()
     assert not nonlinear.is_quadratic
     with pytest.raises(InputError, match="keeps its direct solve"):
         MidpointIntegrator(nonlinear, bar.DT, solver="cg+pmg")
