@@ -192,10 +192,10 @@ class MidpointIntegrator(_Closing):
             ``<prefix>``) or for SNES (nonlinear case).
         solver: the linear case's solver, a name of
             :data:`dolfinx_lopinf.fem.linsolve.SOLVERS` (``"auto"``: MUMPS LU of the step
-            Jacobian, or from :data:`~dolfinx_lopinf.fem.linsolve.BLR_FROM` global unknowns
-            MUMPS's block low-rank Cholesky of its negative, ``"direct+blr"``; the iterative
-            ones work on that negative, M/dt + dt/4 K, which is SPD, warm-started from the
-            extrapolated displacement). Newton (SNES) steps keep their direct solve: only
+            Jacobian, or on larger problems a Cholesky of its negative with the recycled
+            subspace, :func:`~dolfinx_lopinf.fem.linsolve.resolve`; the other solvers work on
+            that negative, M/dt + dt/4 K, which is SPD, the iterative and subspace ones
+            warm-started from the extrapolated displacement). Newton (SNES) steps keep their direct solve: only
             ``"auto"`` or ``"direct"`` there (KSP/PC via petsc_options).
         prefix: PETSc options prefix (default: ``lopinf_midpoint_<n>_``, unique per
             integrator). The options are removed from the global database once read.
@@ -279,7 +279,7 @@ class MidpointIntegrator(_Closing):
             self.solver = linsolve.StepSolver(self._A1, comm, self._solver_name, self.prefix,
                                               options, V=V)
             self._ksp = self.solver.ksp
-            if self.solver.iterative:  # a factor ("direct+blr") takes no warm start
+            if self.solver.uses_guess:  # a plain factor ("direct+blr") takes no warm start
                 self._history = [fpetsc.create_vector(V) for _ in range(3)]
         self._n_history = 0
         self._rhs = fpetsc.create_vector(V)

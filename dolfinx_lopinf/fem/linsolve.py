@@ -24,6 +24,21 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
   single-precision factor (``pc_precision single``) serve: the fishtail's stiffness contrast
   puts A beyond float32. Neither serves as CG's preconditioner either (2-8 iterations of a
   solve nearly as dear as the exact one; changelog).
+* ``"direct+subspace"`` / ``"direct+blr+subspace"``: the factor, and a
+  :class:`RecycledSubspace` of its earlier solutions. A time step's solution is close to the
+  span of the earlier ones (the response of a driven structure lives in few directions - the
+  reason a ROM works), so each step first takes the Galerkin projection onto that span, x_p
+  (the A-norm-closest point of the span; one pass over the directions, no product with A),
+  and accepts it when its exact residual ||b - A x_p|| is below :data:`SUBSPACE_RTOL` = 1e-2
+  of the residual of the extrapolated warm start - the test an iterative solver started
+  there would stop at (below). Otherwise the step is one substitution through the factor,
+  and that solution's new direction joins the span (at most :data:`SUBSPACE_SIZE` = 64; when
+  full, the half that carried the recent projections is kept). A step then costs one product
+  with A (the warm start's residual) and three passes over the directions instead of two
+  passes over the factor; the first steps after :meth:`initialize` (no extrapolation yet)
+  are always the factor's. The answer differs from the factor's by the tolerance, not by
+  rounding: on the fishtail the output moved by 5e-7-8e-7 of its maximum over 1,000-2,000
+  steps, as much as the exact factor's own output moves between 1 and 2 ranks.
 * iterative (``"cg"``, ``"cg+gamg"``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``): a
   Krylov method with a preconditioner of O(n) cost per iteration, **warm-started** from the
   caller's guess (the integrators pass the acceleration, or increment, of the displacement
@@ -35,8 +50,9 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
   ``"cg"`` is ``"cg+gamg"``; ``"cg+pmg"`` is a two-level p-multigrid (Chebyshev-Jacobi
   smoothing on the space, a MUMPS-factored Galerkin coarse problem on the degree-1 Lagrange
   space of the same mesh; the system's space must be Lagrange of degree >= 2).
-* ``"auto"``: ``"direct"``, or ``"direct+blr"`` from :data:`BLR_FROM` = 300k global unknowns
-  (the default; :func:`resolve` says why): on every mesh we measured
+* ``"auto"``: ``"direct"``, with the subspace from :data:`SUBSPACE_FROM` = 100k global
+  unknowns, and block low rank from :data:`BLR_FROM` = 300k (the default; :func:`resolve`
+  says why): on every mesh we measured
   (the fishtail, 46k-795k dofs, 1 and 2 ranks) the factorisation won per step, by 3-4x
   against the best iterative path (``"cg+pmg"``), and by far more against GAMG, Jacobi or
   Chebyshev - the fishtail's A is not mass-dominated (dt^2/4 K dominates M by 1e6-1e7 in the
@@ -63,6 +79,7 @@ PETSc's names (:class:`~dolfinx_lopinf.errors.InputError` otherwise).
 from __future__ import annotations
 
 import time
+from collections import deque
 
 import numpy as np
 
@@ -77,12 +94,17 @@ SOLVERS = {
     "direct": "MUMPS Cholesky factorisation, one forward/backward substitution per step",
     "direct+blr": "MUMPS block low-rank Cholesky (dropping threshold BLR_EPSILON): the same "
                   "substitutions, a 4x faster factorisation on large meshes",
+    "direct+subspace": "the MUMPS Cholesky, each step first projected onto the factor's earlier "
+                       "solutions (RecycledSubspace); a substitution only when that misses",
+    "direct+blr+subspace": "the block low-rank Cholesky with the same projection",
     "cg": "CG + GAMG (same as 'cg+gamg')",
     "cg+gamg": "CG + GAMG smoothed aggregation (rigid-body near-nullspace when given)",
     "cg+pmg": "CG + two-level p-multigrid (Chebyshev-Jacobi smoothing, MUMPS on degree 1)",
     "cg+jacobi": "CG + Jacobi",
     "chebyshev": "Chebyshev iteration + Jacobi (eigenvalue bounds by CG at set-up)",
 }
+#: the factorisations (the rest are iterative)
+FACTORED = ("direct", "direct+blr", "direct+subspace", "direct+blr+subspace")
 #: MUMPS's block low-rank dropping threshold (CNTL(7)) of ``"direct+blr"``
 BLR_EPSILON = 1e-10
 _BLR_OPTIONS = {"mat_mumps_icntl_35": 2, "mat_mumps_cntl_7": BLR_EPSILON}
@@ -133,6 +155,17 @@ def _pop_options(keys) -> None:
             opts.delValue(key)
 
 
+def _positive(value, key: str, *, below: float = np.inf) -> float:
+    """``value`` as a float in (0, below), else an InputError naming ``petsc_options[key]``."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = float("nan")
+    if not (0.0 < out < below):
+        raise InputError(f"petsc_options[{key!r}] must be a number in (0, {below:g}), got {value!r}")
+    return out
+
+
 def _type_names(cls) -> set[str]:
     return {str(getattr(cls, name)) for name in dir(cls) if not name.startswith("_")}
 
@@ -167,8 +200,10 @@ def check_petsc_options(options) -> dict:
     return dict(options)
 
 
-#: from this many unknowns (global) ``"auto"`` is ``"direct+blr"``
+#: from this many unknowns (global) ``"auto"`` factors with block low rank (``"+blr"``)
 BLR_FROM = 300_000
+#: from this many unknowns (global) ``"auto"`` recycles the factor's solutions (``"+subspace"``)
+SUBSPACE_FROM = 100_000
 
 
 def resolve(solver: str, n_global: int | None = None) -> str:
@@ -177,13 +212,21 @@ def resolve(solver: str, n_global: int | None = None) -> str:
     dofs on 1 and 2 ranks, its two substitutions per step cost less than the best iterative
     path (``cg+pmg``, 12 CG iterations per step with the quadratic warm start) at every size;
     the iterative solvers are there for matrices whose factor does not fit in memory (they
-    hold A, the preconditioner and a few vectors). From :data:`BLR_FROM` global unknowns
-    (``n_global``) it is the block low-rank one, ``"direct+blr"`` (a 3-4x faster
-    factorisation at the same cost per step: the module docstring); below it ``"direct"`` (the
-    gain at 203k dofs, one rank: 22.3 -> 13.4 s, was not worth a changed result)."""
+    hold A, the preconditioner and a few vectors). With ``n_global`` global unknowns:
+
+    * below :data:`SUBSPACE_FROM`: ``"direct"`` - every step its substitutions, the answer
+      exact to rounding;
+    * from :data:`SUBSPACE_FROM`: ``"direct+subspace"`` - most steps answered by the projection
+      onto the factor's earlier solutions, to the iterative solvers' kind of tolerance (module
+      docstring);
+    * from :data:`BLR_FROM`: ``"direct+blr+subspace"`` - the block low-rank factor (3-4x
+      faster to factor; below it the gain, 22.3 -> 13.4 s at 203k dofs on one rank, was not
+      worth a changed result)."""
     name = check_solver(solver)
     if name == "auto":
-        return "direct+blr" if n_global is not None and n_global >= BLR_FROM else "direct"
+        if n_global is None or n_global < SUBSPACE_FROM:
+            return "direct"
+        return "direct+blr+subspace" if n_global >= BLR_FROM else "direct+subspace"
     return "cg+gamg" if name == "cg" else name
 
 
@@ -234,6 +277,111 @@ def _p1_interpolation(V):
     return P
 
 
+#: the subspace solvers accept the projection when its residual is below this fraction of the
+#: extrapolated warm start's residual (``ksp_rtol`` in ``petsc_options`` overrides)
+SUBSPACE_RTOL = 1e-2
+#: at most this many directions (``subspace_size`` in ``petsc_options`` overrides); when full,
+#: the half that carries the recent solutions is kept
+SUBSPACE_SIZE = 64
+
+
+class RecycledSubspace:
+    """The Galerkin projection of A x = b onto the span of earlier solutions.
+
+    Holds k directions as rows of V (the owned entries; A-orthonormal: V A V^T = I) and
+    W = V A. The projection of a new right-hand side is
+
+        y = V b,    x_p = V^T y,    r = b - W^T y = b - A x_p,
+
+    the A-norm-closest point of the span to the solution (one pass over V and W each, two
+    small all-reduces). Its residual r is exact, so a caller can accept x_p by a residual
+    test and fall back to a true solve otherwise; :meth:`extend` then adds that solution's
+    part A-orthogonal to the span (two Gram-Schmidt passes in the A inner product, one product
+    with A). When ``capacity`` directions are held, :meth:`extend` first keeps the
+    ``capacity // 2`` combinations that carried the recent projections (leading left singular
+    vectors of their coefficients, computed on rank 0 and broadcast so that every rank rotates
+    its rows alike).
+    """
+
+    def __init__(self, A, capacity: int):
+        self.A = A
+        self.comm = A.getComm().tompi4py()
+        n = A.getLocalSize()[0]
+        self.capacity = int(capacity)
+        self.V = np.empty((self.capacity, n))  # pages are touched only as rows are filled
+        self.W = np.empty((self.capacity, n))
+        self.k = 0
+        # coefficient vectors of the latest projections since the last compression
+        self._recent = deque(maxlen=2 * self.capacity)
+        self._d = A.createVecRight()
+        self._Ad = A.createVecLeft()
+
+    def _allsum(self, local):
+        from ._dolfinx import MPI
+
+        out = np.empty_like(local)
+        self.comm.Allreduce(np.ascontiguousarray(local), out, op=MPI.SUM)
+        return out
+
+    def project(self, b, x, tol: float) -> tuple[bool, float]:
+        """x = x_p when ||b - A x_p|| <= tol (the verdict of every rank, combined), else x is
+        left alone; returns (accepted, ||b - A x_p||)."""
+        from ._dolfinx import MPI
+
+        k = self.k
+        bl = b.array_r
+        y = self._allsum(self.V[:k] @ bl)
+        r = bl - y @ self.W[:k]
+        rho = float(np.sqrt(self._allsum(np.array([r @ r]))[0]))
+        accepted = bool(self.comm.allreduce(bool(rho <= tol), op=MPI.LAND))
+        self._recent.append(np.pad(y, (0, self.capacity - k)))
+        if accepted:
+            x.array_w[:] = y @ self.V[:k]
+        return accepted, rho
+
+    def extend(self, x, b) -> bool:
+        """Add the part of the solution x of A x = b that is A-orthogonal to the span; False
+        when there is none (below 1e-10 of x in the A norm)."""
+        k = self.k
+        d = np.array(x.array_r)
+        for _ in range(2):
+            if k:
+                d -= self._allsum(self.W[:k] @ d) @ self.V[:k]
+        self._d.array_w[:] = d
+        self.A.mult(self._d, self._Ad)
+        ad = self._Ad.array_r
+        norm2, xax = self._allsum(np.array([d @ ad, x.array_r @ b.array_r]))
+        if not (norm2 > 1e-20 * abs(xax)):
+            return False
+        if k == self.capacity:
+            k = self._compress()
+        scale = 1.0 / np.sqrt(norm2)
+        self.V[k] = d * scale
+        self.W[k] = ad * scale
+        self.k = k + 1
+        return True
+
+    def _compress(self) -> int:
+        keep = self.capacity // 2
+        U = np.empty((self.capacity, keep))
+        if self.comm.rank == 0:
+            if self._recent:
+                U[:] = np.linalg.svd(np.array(self._recent).T, full_matrices=False)[0][:, :keep]
+            else:  # no projection since the last compression: the newest directions
+                U[:] = np.eye(self.capacity)[:, -keep:]
+        self.comm.Bcast(U, root=0)
+        self.V[:keep] = U.T @ self.V
+        self.W[:keep] = U.T @ self.W
+        self._recent.clear()
+        self.k = keep
+        return keep
+
+    def close(self) -> None:
+        for vec in (self._d, self._Ad):
+            vec.destroy()
+        self.V = self.W = None
+
+
 class StepSolver:
     """Solves A x = b for a constant SPD A, one right-hand side per time step.
 
@@ -256,16 +404,30 @@ class StepSolver:
     def __init__(self, A, comm, solver: str, prefix: str, petsc_options: dict | None = None, *,
                  V=None, near_nullspace=None):
         self.name = resolve(solver, A.getSize()[0])
-        self.iterative = self.name not in ("direct", "direct+blr")
+        self.iterative = self.name not in FACTORED
         self.iterations = 0
         self.total_iterations = 0
         self.iteration_history = []
         self.solves = 0
+        self.projected = 0
+        #: wall seconds in the solver's own parts of the steps (KSP solves; for the subspace
+        #: solvers also the projections and the extensions)
+        self.seconds = {"solve": 0.0, "projection": 0.0, "extend": 0.0}
         self._P = None
+        self.subspace = None
         options = check_petsc_options(petsc_options)
         t0 = time.perf_counter()
         if not self.iterative:
-            blr = _BLR_OPTIONS if self.name == "direct+blr" else {}
+            if self.name.endswith("+subspace"):
+                self._rtol = _positive(options.pop("ksp_rtol", SUBSPACE_RTOL), "ksp_rtol", below=1.0)
+                size = _positive(options.pop("subspace_size", SUBSPACE_SIZE), "subspace_size")
+                if size != int(size) or size < 2:
+                    raise InputError(f"petsc_options['subspace_size'] must be a whole number >= 2, "
+                                     f"got {size!r}")
+                self._A = A
+                self.subspace = RecycledSubspace(A, int(size))
+                self._ref = A.createVecLeft()
+            blr = _BLR_OPTIONS if "+blr" in self.name else {}
             self.ksp = direct_ksp(A, comm, prefix, {**blr, **options}, spd=True)
         else:
             self.ksp = self._iterative(A, comm, prefix, options, V, near_nullspace)
@@ -308,7 +470,28 @@ class StepSolver:
             rtol = self._rtol if extrapolated else min(self._rtol, RTOL_COLD)
             self.ksp.setTolerances(rtol=rtol, atol=ATOL_REL * b.norm(), divtol=self._dtol,
                                    max_it=self._max_it)
+        elif self.subspace is not None and extrapolated:
+            # the projection is accepted where an iterative solve warm-started at x would stop
+            # (an empty span projects to x_p = 0: a zero right-hand side costs no substitution)
+            t0 = time.perf_counter()
+            self._A.mult(x, self._ref)
+            self._ref.aypx(-1.0, b)
+            tol = max(self._rtol * self._ref.norm(), ATOL_REL * b.norm())
+            accepted = self.subspace.project(b, x, tol)[0]
+            self.seconds["projection"] += time.perf_counter() - t0
+            if accepted:
+                self.iterations = 0
+                self.iteration_history.append(0)
+                self.solves += 1
+                self.projected += 1
+                return int(PETSc.KSP.ConvergedReason.CONVERGED_RTOL)
+        t0 = time.perf_counter()
         self.ksp.solve(b, x)
+        self.seconds["solve"] += time.perf_counter() - t0
+        if self.subspace is not None and self.ksp.getConvergedReason() > 0:
+            t0 = time.perf_counter()
+            self.subspace.extend(x, b)
+            self.seconds["extend"] += time.perf_counter() - t0
         self.iterations = self.ksp.getIterationNumber()
         self.iteration_history.append(self.iterations)
         self.total_iterations += self.iterations
@@ -323,16 +506,28 @@ class StepSolver:
                 f"{self._rtol:g} relative to the warm start's residual); use solver='direct' or "
                 "raise ksp_max_it in petsc_options")
 
+    @property
+    def uses_guess(self) -> bool:
+        """Whether :meth:`solve` reads x as a guess (the caller should extrapolate it)."""
+        return self.iterative or self.subspace is not None
+
     def stats(self) -> dict:
-        """Solver, set-up seconds, solves and iterations (mean per solve)."""
-        return {"solver": self.name, "setup_seconds": self.setup_seconds, "solves": self.solves,
-                "iterations_per_solve": (self.total_iterations / self.solves) if self.solves else 0.0}
+        """Solver, set-up seconds, solves, iterations (mean per solve) and, for the subspace
+        solvers, the solves the projection answered and the directions held."""
+        out = {"solver": self.name, "setup_seconds": self.setup_seconds, "solves": self.solves,
+               "iterations_per_solve": (self.total_iterations / self.solves) if self.solves else 0.0}
+        if self.subspace is not None:
+            out.update(projected_solves=self.projected, subspace_directions=self.subspace.k)
+        out.update({f"{key}_seconds": value for key, value in self.seconds.items()})
+        return out
 
     def close(self) -> None:
-        for obj in (self.ksp, self._P):
+        for obj in (self.ksp, self._P, getattr(self, "_ref", None)):
             if obj is not None:
                 obj.destroy()
-        self.ksp = self._P = None
+        if self.subspace is not None:
+            self.subspace.close()
+        self.ksp = self._P = self._ref = self.subspace = None
 
 
 def extrapolate(history, out):

@@ -3,7 +3,8 @@
 For a forced, damped linear system M q_tt + C q_t + K q = sum_j b_j u_j(t) (M, K from a
 quadratic :class:`~dolfinx_lopinf.fem.lagrangian.LagrangianSystem`, Rayleigh damping
 C = alpha M + beta K, input forms b_j) one step is one solve with the effective matrix
-A = M + dt/2 C + dt^2/4 K, factored once (MUMPS) or solved iteratively, warm-started, to a
+A = M + dt/2 C + dt^2/4 K, factored once (MUMPS; on large meshes most steps answered by the
+projection onto the factor's earlier solutions) or solved iteratively, warm-started, to a
 tolerance tied to the truncation error (:mod:`~dolfinx_lopinf.fem.linsolve`; GAMG with the
 rigid-body near-nullspace, :func:`rigid_body_modes`). :class:`NewmarkIntegrator` follows the protocol of
 :class:`~dolfinx_lopinf.fem.integrators.Integrator`, so the one time loop
@@ -49,7 +50,9 @@ class NewmarkIntegrator(_Closing):
         solver: a name of :data:`dolfinx_lopinf.fem.linsolve.SOLVERS`: ``"auto"`` (default,
             :func:`~dolfinx_lopinf.fem.linsolve.resolve`), ``"direct"`` (MUMPS Cholesky of A,
             factored once), ``"direct+blr"`` (its block low-rank variant: a faster
-            factorisation on large meshes) or an iterative one (``"cg"`` = ``"cg+gamg"`` with
+            factorisation on large meshes), ``"direct+subspace"`` / ``"direct+blr+subspace"``
+            (the factor, most steps answered by the projection onto its earlier solutions:
+            ``auto`` from 100k unknowns) or an iterative one (``"cg"`` = ``"cg+gamg"`` with
             ``near_nullspace``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``), warm-started
             from the displacement extrapolated over the last three steps and stopped at a
             tolerance tied to the truncation error (see :mod:`~dolfinx_lopinf.fem.linsolve`).
@@ -130,8 +133,9 @@ class NewmarkIntegrator(_Closing):
             self.inputs.append(b)
         self.q, self.v, self.a = (fem.Function(V) for _ in range(3))
         self._qs, self._vs, self._rhs, self._tmp, self._w = (fpetsc.create_vector(V) for _ in range(5))
-        # the last displacements, oldest first (the iterative solvers' warm start)
-        self._history = [fpetsc.create_vector(V) for _ in range(3)] if self.solver.iterative else []
+        # the last displacements, oldest first (the warm start of the iterative and subspace
+        # solvers)
+        self._history = [fpetsc.create_vector(V) for _ in range(3)] if self.solver.uses_guess else []
         self._n_history = 0
         self.t = 0.0
 
@@ -277,7 +281,7 @@ class NewmarkIntegrator(_Closing):
         if reason <= 0:
             raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: "
                              f"{self.solver.describe_failure(reason)}")
-        if self.solver.iterative:  # the constrained rows exactly (a preconditioner couples them)
+        if self.solver.uses_guess:  # the constrained rows exactly (a preconditioner couples them)
             fpetsc.set_bc(a, self._bcs)
         qs.copy(q)
         q.axpy(0.25 * dt**2, a)

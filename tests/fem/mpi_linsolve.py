@@ -18,6 +18,7 @@ from dolfinx_lopinf.fem.lagrangian import LagrangianSystem
 E_MOD, NU, RHO, DT = 1.0e5, 0.45, 1.0, 1e-2
 RAYLEIGH = (1e-2, 1e-4)
 ITERATIVE = ("cg+gamg", "cg+pmg", "cg+jacobi", "chebyshev")
+SUBSPACE = ("direct+subspace", "direct+blr+subspace")
 
 
 def build(comm=MPI.COMM_WORLD, degree=2, n=(8, 2, 2)):
@@ -77,11 +78,11 @@ if __name__ == "__main__":
     system, load, E = build(comm)
     smap = StateMap.from_coordinates(system.V)
     out = {}
-    for solver in ("direct", "direct+blr") + ITERATIVE:
+    for solver in ("direct", "direct+blr") + SUBSPACE + ITERATIVE:
         Y, q, _ = newmark(system, load, E, solver)
         out[f"newmark_Y_{solver}"] = Y
         out[f"newmark_q_{solver}"] = gather_states(system.V, q[:, None], smap)
-    for solver in ("direct", "cg+pmg"):
+    for solver in ("direct", "cg+pmg", "direct+subspace"):
         out[f"midpoint_q_{solver}"] = gather_states(system.V, midpoint(system, solver), smap)
     # how far halving dt moves each scheme's answer (the size of its truncation error)
     Y_half, _, _ = newmark(system, load, E, "direct", steps=80, dt=DT / 2)

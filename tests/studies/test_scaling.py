@@ -32,6 +32,10 @@ def test_summary_compares_with_direct():
     assert out["exponents"]["1 ranks, direct"]["exponent"] == pytest.approx(1.0)
     assert out["exponents"]["1 ranks, cg+pmg"]["exponent"] is None
     assert len(out["table"]) == 3 and out["stopped"][0]["stopped"] == "memory"
+    # "auto" resolves to another solver with the size: one exponent for what was asked
+    auto = [rec(100, "auto", [0.0, 1.0], 1.0), rec(400, "auto", [0.0, 1.0], 4.0)]
+    auto[1]["resolved_solver"] = "direct+blr+subspace"
+    assert scaling.summarise(auto)["exponents"]["1 ranks, auto"]["exponent"] == pytest.approx(1.0)
     table = scaling._table(out)
     assert "stopped 800k" in table
     head, rule, *rows = table.splitlines()[:5]  # a markdown table: header, rule, one line per case
