@@ -342,6 +342,8 @@ class RecycledSubspace:
     def extend(self, x, b) -> bool:
         """Add the part of the solution x of A x = b that is A-orthogonal to the span; False
         when there is none (below 1e-10 of x in the A norm)."""
+        from ._dolfinx import MPI
+
         k = self.k
         d = np.array(x.array_r)
         for _ in range(2):
@@ -351,7 +353,8 @@ class RecycledSubspace:
         self.A.mult(self._d, self._Ad)
         ad = self._Ad.array_r
         norm2, xax = self._allsum(np.array([d @ ad, x.array_r @ b.array_r]))
-        if not (norm2 > 1e-20 * abs(xax)):
+        # every rank must agree (k sizes the all-reduces), as on project's verdict
+        if not self.comm.allreduce(bool(norm2 > 1e-20 * abs(xax)), op=MPI.LAND):
             return False
         if k == self.capacity:
             k = self._compress()
@@ -424,7 +427,6 @@ class StepSolver:
                 if size != int(size) or size < 2:
                     raise InputError(f"petsc_options['subspace_size'] must be a whole number >= 2, "
                                      f"got {size!r}")
-                self._A = A
                 self.subspace = RecycledSubspace(A, int(size))
                 self._ref = A.createVecLeft()
             blr = _BLR_OPTIONS if "+blr" in self.name else {}
@@ -474,7 +476,7 @@ class StepSolver:
             # the projection is accepted where an iterative solve warm-started at x would stop
             # (an empty span projects to x_p = 0: a zero right-hand side costs no substitution)
             t0 = time.perf_counter()
-            self._A.mult(x, self._ref)
+            self.subspace.A.mult(x, self._ref)
             self._ref.aypx(-1.0, b)
             tol = max(self._rtol * self._ref.norm(), ATOL_REL * b.norm())
             accepted = self.subspace.project(b, x, tol)[0]

@@ -281,7 +281,7 @@ class NewmarkIntegrator(_Closing):
         if reason <= 0:
             raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: "
                              f"{self.solver.describe_failure(reason)}")
-        if self.solver.uses_guess:  # the constrained rows exactly (a preconditioner couples them)
+        if self.solver.uses_guess:  # the constrained rows exactly (a guess-based answer's)
             fpetsc.set_bc(a, self._bcs)
         qs.copy(q)
         q.axpy(0.25 * dt**2, a)
