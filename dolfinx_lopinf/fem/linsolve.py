@@ -11,7 +11,9 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
 * ``"direct"``: factor A once (MUMPS Cholesky LDL^T; PETSc's own on one rank without MUMPS);
   every step is one forward and one backward substitution through the factor. Per step this
   reads the factor twice - its size, not n, sets the cost; with nested dissection in 3D it
-  grows like n^{4/3} (plus the dense top separator).
+  grows like n^{4/3} (plus the dense top separator). Once factored, the assembled A is no
+  longer needed: :meth:`StepSolver.release_matrix` takes its action instead (the Newmark
+  integrator passes m M + kappa K, :func:`combination_operator`, and destroys A).
 * ``"direct+blr"``: the same with MUMPS's block low-rank factorisation
   (``mat_mumps_icntl_35`` = 2, dropping threshold ``mat_mumps_cntl_7`` = :data:`BLR_EPSILON`
   = 1e-10; both can be overridden through ``petsc_options``). The factorisation compresses
@@ -31,12 +33,17 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
   (the A-norm-closest point of the span; one pass over the directions, no product with A),
   and accepts it when its exact residual ||b - A x_p|| is below :data:`SUBSPACE_RTOL` = 1e-2
   of the residual of the extrapolated warm start - the test an iterative solver started
-  there would stop at (below). Otherwise the step is one substitution through the factor,
-  and that solution's new direction joins the span (at most :data:`SUBSPACE_SIZE` = 64; when
-  full, the half that carried the recent projections is kept). A step then costs one product
-  with A (the warm start's residual) and three passes over the directions instead of two
-  passes over the factor; the first steps after :meth:`initialize` (no extrapolation yet)
-  are always the factor's. The answer differs from the factor's by the tolerance, not by
+  there would stop at (below) - or below twice the (median) relative residual of the
+  factor's latest answers (a block low-rank factor's residual is set by its dropping threshold:
+  a projection that good is as good as a substitution). Otherwise the step is one
+  substitution through the factor, and that solution's new direction joins the span (at
+  most :data:`SUBSPACE_SIZE` = 64; when full, the half that carried the recent projections
+  is kept). A step then costs three passes over the directions instead of two passes over
+  the factor. The warm start's residual b - A x_e needs A x_e: a caller that builds its
+  guess from earlier answers passes their images (``guess_image``; the solver returns each
+  answer's A x, which the projection and the extension have at no extra product) - the
+  Newmark integrator does - else it costs one product with A. The first steps after
+  :meth:`initialize` (no extrapolation yet) are always the factor's. The answer differs from the factor's by the tolerance, not by
   rounding: on the fishtail the output moved by 5e-7-8e-7 of its maximum over 1,000-2,000
   steps, as much as the exact factor's own output moves between 1 and 2 ranks.
 * iterative (``"cg"``, ``"cg+gamg"``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``): a
@@ -280,6 +287,8 @@ def _p1_interpolation(V):
 #: the subspace solvers accept the projection when its residual is below this fraction of the
 #: extrapolated warm start's residual (``ksp_rtol`` in ``petsc_options`` overrides)
 SUBSPACE_RTOL = 1e-2
+#: the acceptance floor is twice the median relative residual of this many latest substitutions
+FACTOR_RESIDUAL_WINDOW = 16
 #: at most this many directions (``subspace_size`` in ``petsc_options`` overrides); when full,
 #: the half that carries the recent solutions is kept
 SUBSPACE_SIZE = 64
@@ -323,35 +332,45 @@ class RecycledSubspace:
         self.comm.Allreduce(np.ascontiguousarray(local), out, op=MPI.SUM)
         return out
 
-    def project(self, b, x, tol: float) -> tuple[bool, float]:
+    def project(self, b, x, tol: float, image=None) -> tuple[bool, float]:
         """x = x_p when ||b - A x_p|| <= tol (the verdict of every rank, combined), else x is
-        left alone; returns (accepted, ||b - A x_p||)."""
+        left alone; returns (accepted, ||b - A x_p||). ``image`` (a Vec, optional): set to
+        A x_p = W^T y when accepted."""
         from ._dolfinx import MPI
 
         k = self.k
         bl = b.array_r
         y = self._allsum(self.V[:k] @ bl)
-        r = bl - y @ self.W[:k]
+        Ax = y @ self.W[:k]
+        r = bl - Ax
         rho = float(np.sqrt(self._allsum(np.array([r @ r]))[0]))
         accepted = bool(self.comm.allreduce(bool(rho <= tol), op=MPI.LAND))
         self._recent.append(np.pad(y, (0, self.capacity - k)))
         if accepted:
             x.array_w[:] = y @ self.V[:k]
+            if image is not None:
+                image.array_w[:] = Ax
         return accepted, rho
 
-    def extend(self, x, b) -> bool:
+    def extend(self, x, b, image=None) -> bool:
         """Add the part of the solution x of A x = b that is A-orthogonal to the span; False
-        when there is none (below 1e-10 of x in the A norm)."""
+        when there is none (below 1e-10 of x in the A norm). ``image`` (a Vec, optional): set
+        to A x = A d + W^T c, d = x - V^T c the added part (no second product with A)."""
         from ._dolfinx import MPI
 
         k = self.k
         d = np.array(x.array_r)
+        c = np.zeros(k)
         for _ in range(2):
             if k:
-                d -= self._allsum(self.W[:k] @ d) @ self.V[:k]
+                ck = self._allsum(self.W[:k] @ d)
+                d -= ck @ self.V[:k]
+                c += ck
         self._d.array_w[:] = d
         self.A.mult(self._d, self._Ad)
         ad = self._Ad.array_r
+        if image is not None:
+            image.array_w[:] = ad + c @ self.W[:k] if k else ad
         norm2, xax = self._allsum(np.array([d @ ad, x.array_r @ b.array_r]))
         # every rank must agree (k sizes the all-reduces), as on project's verdict
         if not self.comm.allreduce(bool(norm2 > 1e-20 * abs(xax)), op=MPI.LAND):
@@ -383,6 +402,32 @@ class RecycledSubspace:
         for vec in (self._d, self._Ad):
             vec.destroy()
         self.V = self.W = None
+
+
+class _Combination:
+    """The action of c1 A1 + c2 A2 (a PETSc python-shell context)."""
+
+    def __init__(self, terms):
+        self.terms = terms
+        self.work = terms[0][1].createVecLeft()
+
+    def mult(self, mat, x, y):
+        (c1, A1), (c2, A2) = self.terms
+        A1.mult(x, y)
+        y.scale(c1)
+        A2.mult(x, self.work)
+        y.axpy(c2, self.work)
+
+    def destroy(self, mat=None):
+        self.work.destroy()
+
+
+def combination_operator(c1, A1, c2, A2):
+    """A matrix-free c1 A1 + c2 A2 (a shell: two products per multiplication, no storage)."""
+    ctx = _Combination([(float(c1), A1), (float(c2), A2)])
+    op = PETSc.Mat().createPython(A1.getSizes(), ctx, comm=A1.getComm())
+    op.setUp()
+    return op
 
 
 class StepSolver:
@@ -429,6 +474,12 @@ class StepSolver:
                                      f"got {size!r}")
                 self.subspace = RecycledSubspace(A, int(size))
                 self._ref = A.createVecLeft()
+                self._image = A.createVecLeft()  # A x of a substitution (its true residual)
+                #: the relative residuals ||b - A x|| / ||b|| of the factor's answers (a block
+                #: low-rank factor's are its dropping threshold's, not rounding's): the largest,
+                #: and the latest few, whose median sets the acceptance floor
+                self.factor_residual_max = 0.0
+                self._factor_residuals = deque(maxlen=FACTOR_RESIDUAL_WINDOW)
             blr = _BLR_OPTIONS if "+blr" in self.name else {}
             self.ksp = direct_ksp(A, comm, prefix, {**blr, **options}, spd=True)
         else:
@@ -463,11 +514,16 @@ class StepSolver:
         self._rtol, _, self._dtol, self._max_it = ksp.getTolerances()
         return ksp
 
-    def solve(self, b, x, *, extrapolated: bool = True) -> int:
+    def solve(self, b, x, *, extrapolated: bool = True, guess_image=None, image=None) -> int:
         """Solve A x = b (x: the warm start for the iterative solvers); return the KSP's
         converged reason (> 0: converged). ``extrapolated``: x is the quadratic extrapolation
         (tolerance :data:`RTOL` or ``ksp_rtol``), else a cruder guess (:data:`RTOL_COLD`, or
-        ``ksp_rtol`` when that is smaller)."""
+        ``ksp_rtol`` when that is smaller).
+
+        The subspace solvers (:attr:`returns_image`) also take ``guess_image`` = A x (the
+        guess's image, when the caller knows it: the warm start's residual then costs no
+        product with A) and fill ``image`` with A x of the answer (the caller's next guess
+        image, when it combines earlier answers); the other solvers ignore both."""
         if self.iterative:
             rtol = self._rtol if extrapolated else min(self._rtol, RTOL_COLD)
             self.ksp.setTolerances(rtol=rtol, atol=ATOL_REL * b.norm(), divtol=self._dtol,
@@ -476,10 +532,18 @@ class StepSolver:
             # the projection is accepted where an iterative solve warm-started at x would stop
             # (an empty span projects to x_p = 0: a zero right-hand side costs no substitution)
             t0 = time.perf_counter()
-            self.subspace.A.mult(x, self._ref)
+            if guess_image is None:
+                self.subspace.A.mult(x, self._ref)
+            else:
+                guess_image.copy(self._ref)
             self._ref.aypx(-1.0, b)
-            tol = max(self._rtol * self._ref.norm(), ATOL_REL * b.norm())
-            accepted = self.subspace.project(b, x, tol)[0]
+            # a projection as close as the factor's own answers is accepted too (without this
+            # floor, steps whose tolerance falls below a block low-rank factor's residual
+            # would all be substitutions)
+            b_norm = b.norm()
+            tol = max(self._rtol * self._ref.norm(), 2.0 * self.factor_residual * b_norm,
+                      ATOL_REL * b_norm)
+            accepted = self.subspace.project(b, x, tol, image)[0]
             self.seconds["projection"] += time.perf_counter() - t0
             if accepted:
                 self.iterations = 0
@@ -492,13 +556,35 @@ class StepSolver:
         self.seconds["solve"] += time.perf_counter() - t0
         if self.subspace is not None and self.ksp.getConvergedReason() > 0:
             t0 = time.perf_counter()
-            self.subspace.extend(x, b)
+            image = self._image if image is None else image
+            self.subspace.extend(x, b, image)
+            image.copy(self._ref)
+            self._ref.aypx(-1.0, b)  # b - A x
+            b_norm = b.norm()
+            if b_norm > 0:
+                rel = self._ref.norm() / b_norm
+                self.factor_residual_max = max(self.factor_residual_max, rel)
+                self._factor_residuals.append(rel)
             self.seconds["extend"] += time.perf_counter() - t0
         self.iterations = self.ksp.getIterationNumber()
         self.iteration_history.append(self.iterations)
         self.total_iterations += self.iterations
         self.solves += 1
         return self.ksp.getConvergedReason()
+
+    def release_matrix(self, operator) -> None:
+        """Hand the factored solvers an operator with A's action in place of the assembled A
+        (e.g. :func:`combination_operator` of M and K), so that the caller can destroy A: the
+        factor keeps what the substitutions need, A itself is only multiplied by (the
+        subspace's extension). Memory: one matrix the size of M less (386 MB per rank of
+        the 795k-dof fishtail on 2 ranks). The factor is kept (never refactored)."""
+        if self.iterative:
+            raise InputError(f"release_matrix: the iterative solver {self.name!r} multiplies by "
+                             "the assembled matrix at every iteration")
+        self.ksp.getPC().setReusePreconditioner(True)
+        self.ksp.setOperators(operator)
+        if self.subspace is not None:
+            self.subspace.A = operator
 
     def describe_failure(self, reason: int) -> str:
         """What to say when a solve did not converge."""
@@ -507,6 +593,18 @@ class StepSolver:
         return (f"{self.name}: KSP reason {reason} after {self.iterations} iterations (tolerance "
                 f"{self._rtol:g} relative to the warm start's residual); use solver='direct' or "
                 "raise ksp_max_it in petsc_options")
+
+    @property
+    def factor_residual(self) -> float:
+        """The median relative residual of the factor's latest answers (0 before any): a
+        projection within twice it is accepted (a median, so that one odd right-hand side does
+        not loosen the test for the whole run)."""
+        return float(np.median(self._factor_residuals)) if self._factor_residuals else 0.0
+
+    @property
+    def returns_image(self) -> bool:
+        """Whether :meth:`solve` fills ``image`` with A x and reads ``guess_image``."""
+        return self.subspace is not None
 
     @property
     def uses_guess(self) -> bool:
@@ -519,17 +617,19 @@ class StepSolver:
         out = {"solver": self.name, "setup_seconds": self.setup_seconds, "solves": self.solves,
                "iterations_per_solve": (self.total_iterations / self.solves) if self.solves else 0.0}
         if self.subspace is not None:
-            out.update(projected_solves=self.projected, subspace_directions=self.subspace.k)
+            out.update(projected_solves=self.projected, subspace_directions=self.subspace.k,
+                       factor_residual=self.factor_residual,
+                       factor_residual_max=self.factor_residual_max)
         out.update({f"{key}_seconds": value for key, value in self.seconds.items()})
         return out
 
     def close(self) -> None:
-        for obj in (self.ksp, self._P, getattr(self, "_ref", None)):
+        for obj in (self.ksp, self._P, getattr(self, "_ref", None), getattr(self, "_image", None)):
             if obj is not None:
                 obj.destroy()
         if self.subspace is not None:
             self.subspace.close()
-        self.ksp = self._P = self._ref = self.subspace = None
+        self.ksp = self._P = self._ref = self._image = self.subspace = None
 
 
 def extrapolate(history, out):

@@ -28,6 +28,8 @@ fem = dolfinx.fem
 fpetsc = dolfinx.fem.petsc
 #: let PETSc compare the sparsity of M and K (same pattern: the fast entry-wise sum)
 _UNKNOWN_PATTERN = PETSc.Mat.Structure.UNKNOWN_NONZERO_PATTERN
+#: the warm start a_e = a_{k-2} + a_{k-1} - a_k (coefficients of the history, oldest first)
+_EXTRAPOLATION = np.array([1.0, 1.0, -1.0])
 
 
 class NewmarkIntegrator(_Closing):
@@ -54,8 +56,10 @@ class NewmarkIntegrator(_Closing):
             (the factor, most steps answered by the projection onto its earlier solutions:
             ``auto`` from 100k unknowns) or an iterative one (``"cg"`` = ``"cg+gamg"`` with
             ``near_nullspace``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``), warm-started
-            from the displacement extrapolated over the last three steps and stopped at a
-            tolerance tied to the truncation error (see :mod:`~dolfinx_lopinf.fem.linsolve`).
+            from the displacement extrapolated over the last three steps (as the
+            acceleration a_e = a_{k-1} + a_{k-2} - a_k, which it is for Newmark states) and
+            stopped at a tolerance tied to the truncation error (see
+            :mod:`~dolfinx_lopinf.fem.linsolve`).
         near_nullspace: optional PETSc NullSpace (rigid body modes) for GAMG.
         prefix: PETSc options prefix (default ``lopinf_newmark_<n>_``, unique); the options
             are removed from the global database once the solver is set up.
@@ -125,6 +129,14 @@ class NewmarkIntegrator(_Closing):
                                           near_nullspace=near_nullspace)
         self._ksp = self.solver.ksp
         self.timings["solver_setup_seconds"] = self.solver.setup_seconds
+        if not self.solver.iterative:
+            # the factor holds what the solves need: the assembled A (as large as M) gives way
+            # to its action m M + kappa K, two products where A is multiplied (at initialize
+            # and, for the subspace solvers, at a substitution)
+            self.A = linsolve.combination_operator(1.0 + 0.5 * self.dt * alpha, M,
+                                                   0.5 * self.dt * beta + 0.25 * self.dt**2, K)
+            self.solver.release_matrix(self.A)
+            A.destroy()
         self.inputs = []
         for form in input_forms:
             b = fpetsc.assemble_vector(fem.form(form))
@@ -133,9 +145,12 @@ class NewmarkIntegrator(_Closing):
             self.inputs.append(b)
         self.q, self.v, self.a = (fem.Function(V) for _ in range(3))
         self._qs, self._vs, self._rhs, self._tmp, self._w = (fpetsc.create_vector(V) for _ in range(5))
-        # the last displacements, oldest first (the warm start of the iterative and subspace
-        # solvers)
+        # the last three solved accelerations, oldest first (the warm start of the iterative
+        # and subspace solvers) and, for the subspace solvers, their images A a (the warm
+        # start's residual b - A a_e then costs no product with A)
         self._history = [fpetsc.create_vector(V) for _ in range(3)] if self.solver.uses_guess else []
+        n_images = 4 if self.solver.returns_image else 0  # three and the guess's
+        self._images = [fpetsc.create_vector(V) for _ in range(n_images)]
         self._n_history = 0
         self.t = 0.0
 
@@ -151,16 +166,6 @@ class NewmarkIntegrator(_Closing):
             C.axpy(beta, self.K, structure=_UNKNOWN_PATTERN)
             self._C = C
         return self._C
-
-    def _damping_times(self, v, out, work):
-        """out = C v = alpha M v + beta K v (``work``: a scratch vector)."""
-        alpha, beta = self.rayleigh
-        self.K.mult(v, out)
-        out.scale(beta)
-        if alpha:
-            self.M.mult(v, work)
-            out.axpy(alpha, work)
-        return out
 
     def _values(self, u, what: str):
         """(problem, u as (m,) floats): the input values of one time, checked on this rank."""
@@ -233,6 +238,11 @@ class NewmarkIntegrator(_Closing):
                 self.a.x.scatter_forward()
                 ksp.destroy()
         self._n_history = 0
+        if self._history:  # a_0 starts the warm start's history (and A a_0 its images')
+            self.a.x.petsc_vec.copy(self._history[2])
+            if self._images:
+                self.A.mult(self.a.x.petsc_vec, self._images[2])
+            self._n_history = 1
         self.t = 0.0
         self.initialized = True
 
@@ -267,22 +277,35 @@ class NewmarkIntegrator(_Closing):
             self.M.mult(vs, tmp)
             rhs.axpy(-alpha, tmp)
         fpetsc.set_bc(rhs, self._bcs)
-        if self._history:
-            # warm start: a1 = 4/dt^2 (q_e - q*), q_e = 3 q_k - 3 q_{k-1} + q_{k-2}; until three
-            # displacements are known, the previous acceleration (Newmark's own predictor)
-            q.copy(self._history[0])  # the oldest slot becomes the newest
-            self._history.append(self._history.pop(0))
-            self._n_history = min(self._n_history + 1, 3)
-            if self._n_history == 3:
-                linsolve.extrapolate(self._history, a)
-                a.axpy(-1.0, qs)
-                a.scale(4.0 / dt**2)
-        reason = self.solver.solve(rhs, a, extrapolated=self._n_history == 3)
+        # warm start: a1 = 4/dt^2 (q_e - q*) with q_e = 3 q_k - 3 q_{k-1} + q_{k-2}, which for
+        # Newmark states is a_e = a_{k-1} + a_{k-2} - a_k (the average-acceleration update
+        # gives q_e - q* = dt^2/4 (a_{k-1} + a_{k-2} - a_k)); its image A a_e is the same
+        # combination of the answers' images, so the subspace solvers' acceptance test needs
+        # no product with A. Until three accelerations are solved, the previous acceleration
+        # (Newmark's own predictor).
+        extrapolated = self._n_history == 3
+        guess_image = image = None
+        if extrapolated:
+            a.set(0.0)
+            a.maxpy(_EXTRAPOLATION, self._history)
+        if self._images:
+            image = self._images[0]  # the oldest slot, refilled with this answer's image
+            if extrapolated:
+                guess_image = self._images[3]
+                guess_image.set(0.0)
+                guess_image.maxpy(_EXTRAPOLATION, self._images[:3])
+        reason = self.solver.solve(rhs, a, extrapolated=extrapolated, guess_image=guess_image,
+                                   image=image)
         if reason <= 0:
             raise StepFailed(f"Newmark solve failed at t = {self.t + dt:.6g}: "
                              f"{self.solver.describe_failure(reason)}")
-        if self.solver.uses_guess:  # the constrained rows exactly (a guess-based answer's)
-            fpetsc.set_bc(a, self._bcs)
+        if self._history:
+            fpetsc.set_bc(a, self._bcs)  # the constrained rows exactly (a guess-based answer's)
+            a.copy(self._history[0])  # the oldest slot becomes the newest
+            self._history.append(self._history.pop(0))
+            if self._images:
+                self._images[:3] = self._images[1:3] + self._images[:1]
+            self._n_history = min(self._n_history + 1, 3)
         qs.copy(q)
         q.axpy(0.25 * dt**2, a)
         vs.copy(v)
@@ -316,10 +339,10 @@ class NewmarkIntegrator(_Closing):
         if self.solver is not None:
             self.solver.close()
         _destroy(self.M, self.K, self._C, self.A, self._qs, self._vs, self._rhs, self._tmp,
-                 self._w, *self.inputs, *self._history)
+                 self._w, *self.inputs, *self._history, *self._images)
         self._ksp = self.solver = self.M = self.K = self._C = self.A = None
         self._qs = self._vs = self._rhs = self._tmp = self._w = None
-        self.inputs, self._history = [], []
+        self.inputs, self._history, self._images = [], [], []
 
 
 def rigid_body_modes(V):
