@@ -169,18 +169,20 @@ def integrator(tail: Fishtail, dt: float = DT, *, solver: str = "auto",
 
 
 def simulate(tail: Fishtail, nm: NewmarkIntegrator, u, t_end: float, *, sinks=(),
-             progress: bool = False):
+             progress: bool = False, energy_every: int = 1):
     """Newmark from rest under the chamber input ``u(t)`` to ``t_end`` through the one time
-    loop (:func:`dolfinx_lopinf.fem.fom.run`): the POI output and the energy at every step, and
-    whatever the extra ``sinks`` record (e.g. ``StreamingPOD.sink``, ``FieldSnapshots``).
+    loop (:func:`dolfinx_lopinf.fem.fom.run`): the POI output at every step, the energy at
+    every ``energy_every``-th step (two products with the matrices each: on large meshes as
+    dear as the step's own), and whatever the extra ``sinks`` record (e.g.
+    ``StreamingPOD.sink``, ``FieldSnapshots``).
 
     Returns:
-        ``(Y, E, seconds)``: output and energy at t = 0, dt, ..., t_end and the loop's wall
-        time (max over ranks).
+        ``(Y, E, seconds)``: output at t = 0, dt, ..., t_end, energy at t = 0,
+        energy_every dt, ... and the loop's wall time (max over ranks).
     """
     n_steps = int(round(t_end / nm.dt))
     nm.initialize(tail.chamber_pressures(float(u(0.0))))
-    y, energy = OutputProbe(tail.output_matrix), EnergyProbe()
+    y, energy = OutputProbe(tail.output_matrix), EnergyProbe(every=energy_every)
     every = [*sinks, y, energy] + ([Progress(every=50)] if progress else [])
     loop = run(nm, n_steps, sinks=every, inputs=lambda t: tail.chamber_pressures(float(u(t))))
     return np.array([v[0] for v in y.values]), np.array(energy.values), loop["seconds"]

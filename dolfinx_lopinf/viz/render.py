@@ -366,9 +366,11 @@ def animation(path, grid, series: dict, *, magnify: float, fps: int = 10, titles
 
 
 def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, ylabel: str,
-                        title: str = "", vline: float | None = None) -> Path:
+                        title: str = "", vline: float | None = None,
+                        t_energy: np.ndarray | None = None) -> Path:
     """Three stacked panels against time: outputs (label -> y; the first is the reference),
-    each ROM's error |y - y_ref| / max|y_ref| (log), and energies (label -> E; first = reference)."""
+    each ROM's error |y - y_ref| / max|y_ref| (log), and energies (label -> E; first =
+    reference) at ``t_energy`` (default ``t``)."""
     plt = _pyplot()
     colors = ["C7", "C0", "C3", "C2", "C1"]
     fig, axes = plt.subplots(3, 1, figsize=(7.5, 7.5), sharex=True)
@@ -380,7 +382,8 @@ def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, y
             err = np.abs(np.asarray(y) - ref) / scale
             axes[1].semilogy(t, np.where(err > 0, err, np.nan), lw=0.9, color=colors[i % 5], label=label)
     for i, (label, e) in enumerate(energies.items()):
-        axes[2].plot(t, e, lw=1.0 if i else 1.8, color=colors[i % 5], label=label)
+        axes[2].plot(t if t_energy is None else t_energy, e, lw=1.0 if i else 1.8,
+                     color=colors[i % 5], label=label)
     axes[0].set_ylabel(ylabel)
     axes[1].set_ylabel("|y - y_FOM| / max|y_FOM|")
     axes[2].set_ylabel("energy [J]")
