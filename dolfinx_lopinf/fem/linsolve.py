@@ -43,9 +43,10 @@ changes, so there are two kinds of solver (``solver=``, :data:`SOLVERS`):
   guess from earlier answers passes their images (``guess_image``; the solver returns each
   answer's A x, which the projection and the extension have at no extra product) - the
   Newmark integrator does - else it costs one product with A. The first steps after
-  :meth:`initialize` (no extrapolation yet) are always the factor's. The answer differs from the factor's by the tolerance, not by
-  rounding: on the fishtail the output moved by 5e-7-8e-7 of its maximum over 1,000-2,000
-  steps, as much as the exact factor's own output moves between 1 and 2 ranks.
+  :meth:`initialize` (no extrapolation yet) are always the factor's. The answer differs
+  from the factor's by the tolerance, not by rounding: on the fishtail the output moved by
+  5e-7-8e-7 of its maximum over 1,000-2,000 steps, as much as the exact factor's own output
+  moves between 1 and 2 ranks.
 * iterative (``"cg"``, ``"cg+gamg"``, ``"cg+pmg"``, ``"cg+jacobi"``, ``"chebyshev"``): a
   Krylov method with a preconditioner of O(n) cost per iteration, **warm-started** from the
   caller's guess (the integrators pass the acceleration, or increment, of the displacement
@@ -97,7 +98,8 @@ fpetsc = dolfinx.fem.petsc
 
 #: solver names and what they are
 SOLVERS = {
-    "auto": "chosen at set-up (resolve(): 'direct', or 'direct+blr' from BLR_FROM unknowns)",
+    "auto": "chosen at set-up (resolve(): 'direct', with the subspace from SUBSPACE_FROM and "
+            "block low rank from BLR_FROM unknowns)",
     "direct": "MUMPS Cholesky factorisation, one forward/backward substitution per step",
     "direct+blr": "MUMPS block low-rank Cholesky (dropping threshold BLR_EPSILON): the same "
                   "substitutions, a 4x faster factorisation on large meshes",
