@@ -94,6 +94,9 @@ def main(argv=None):
     inputs = [args.train] + [name for name in inputs if name != args.train]  # training run first
     r_values = [2, 4] if args.quick else [2, 4, 6, 8, 10]
     dt = scene.DT
+    n_steps = int(round(t_end / dt))
+    if args.energy_every is not None and not 1 <= args.energy_every <= n_steps:
+        parser.error(f"--energy-every must be in 1..{n_steps}, got {args.energy_every}")
 
     t0 = time.perf_counter()
     tail = scene.build(scene.SIZES[size], comm, hull_density=args.hull_density)
@@ -101,9 +104,9 @@ def main(argv=None):
     nm = scene.integrator(tail, dt, solver=args.solver)
     setup_s = time.perf_counter() - t0
     n_dofs = V.dofmap.index_map.size_global * 3
-    energy_every = args.energy_every or (ENERGY_EVERY_LARGE if n_dofs >= ENERGY_STRIDE_FROM else 1)
-    if energy_every < 1 or energy_every > int(round(t_end / dt)):
-        parser.error(f"--energy-every must be in 1..{int(round(t_end / dt))}, got {energy_every}")
+    energy_every = args.energy_every
+    if energy_every is None:
+        energy_every = ENERGY_EVERY_LARGE if n_dofs >= ENERGY_STRIDE_FROM else 1
     if comm.rank == 0:
         print(f"fishtail ({size}): {n_dofs} dofs, set-up {setup_s:.1f} s")
     state_map = StateMap.from_coordinates(V)

@@ -105,3 +105,14 @@ def test_newmark_initial_acceleration_is_consistent(small):
     Ma.axpy(-1.0, rhs)
     assert rhs.norm() > 0 and Ma.norm() < 1e-10 * rhs.norm()
 
+
+
+@pytest.mark.parametrize("every", ["0", "-5", "601"])
+def test_demo_refuses_an_energy_stride_outside_the_run_before_building(every, capsys):
+    """--energy-every N must be in 1..steps (the quick run has 600); 0 must not fall back
+    to the default silently, and the refusal comes before the mesh is built."""
+    from conftest import load_demo
+
+    with pytest.raises(SystemExit):
+        load_demo("fishtail").main(["--quick", "--energy-every", every])
+    assert "--energy-every must be in 1..600" in capsys.readouterr().err
