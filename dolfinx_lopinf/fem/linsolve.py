@@ -465,6 +465,11 @@ class StepSolver:
         self.seconds = {"solve": 0.0, "projection": 0.0, "extend": 0.0}
         self._P = None
         self.subspace = None
+        #: the relative residuals ||b - A x|| / ||b|| of the subspace solvers' substitutions (a
+        #: block low-rank factor's are its dropping threshold's, not rounding's): the largest,
+        #: and the latest few, whose median sets the acceptance floor
+        self.factor_residual_max = 0.0
+        self._factor_residuals = deque(maxlen=FACTOR_RESIDUAL_WINDOW)
         options = check_petsc_options(petsc_options)
         t0 = time.perf_counter()
         if not self.iterative:
@@ -477,11 +482,6 @@ class StepSolver:
                 self.subspace = RecycledSubspace(A, int(size))
                 self._ref = A.createVecLeft()
                 self._image = A.createVecLeft()  # A x of a substitution (its true residual)
-                #: the relative residuals ||b - A x|| / ||b|| of the factor's answers (a block
-                #: low-rank factor's are its dropping threshold's, not rounding's): the largest,
-                #: and the latest few, whose median sets the acceptance floor
-                self.factor_residual_max = 0.0
-                self._factor_residuals = deque(maxlen=FACTOR_RESIDUAL_WINDOW)
             blr = _BLR_OPTIONS if "+blr" in self.name else {}
             self.ksp = direct_ksp(A, comm, prefix, {**blr, **options}, spd=True)
         else:

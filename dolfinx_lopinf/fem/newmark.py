@@ -118,9 +118,10 @@ class NewmarkIntegrator(_Closing):
         K.assemble()
         # A = M + dt/2 (alpha M + beta K) + dt^2/4 K (PETSc finds out that M and K share
         # their sparsity - the same space and cells - and adds them entry by entry)
+        m, kappa = 1.0 + 0.5 * self.dt * alpha, 0.5 * self.dt * beta + 0.25 * self.dt**2
         A = M.copy()
-        A.scale(1.0 + 0.5 * self.dt * alpha)
-        A.axpy(0.5 * self.dt * beta + 0.25 * self.dt**2, K, structure=_UNKNOWN_PATTERN)
+        A.scale(m)
+        A.axpy(kappa, K, structure=_UNKNOWN_PATTERN)
         self.M, self.K, self.A = M, K, A
         self.rayleigh = (alpha, beta)
         self._C = None
@@ -133,8 +134,7 @@ class NewmarkIntegrator(_Closing):
             # the factor holds what the solves need: the assembled A (as large as M) gives way
             # to its action m M + kappa K, two products where A is multiplied (at initialize
             # and, for the subspace solvers, at a substitution)
-            self.A = linsolve.combination_operator(1.0 + 0.5 * self.dt * alpha, M,
-                                                   0.5 * self.dt * beta + 0.25 * self.dt**2, K)
+            self.A = linsolve.combination_operator(m, M, kappa, K)
             self.solver.release_matrix(self.A)
             A.destroy()
         self.inputs = []

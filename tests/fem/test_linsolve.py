@@ -343,7 +343,9 @@ def test_newmark_keeps_the_images_of_its_accelerations_without_products(system, 
             qs.append(nm.q.x.petsc_vec.copy())
             for a, image in zip(nm._history, nm._images[:3]):
                 nm.A.mult(a, Aa)
-                assert (Aa - image).norm() <= 1e-12 * Aa.norm(), k
+                # rounding of the Gram-Schmidt parts and the compressions' rotations:
+                # 5.2e-13 measured; a missing part (A d without W^T c) is off by O(1)
+                assert (Aa - image).norm() <= 1e-10 * Aa.norm(), k
         stats = nm.solver.stats()
         # both kinds of step were checked, and compressions (more substitutions than room)
         assert 0 < stats["projected_solves"] and stats["solves"] - stats["projected_solves"] > 8
