@@ -11,7 +11,7 @@ FIND_PYTHON = for c in python3.12 python3.13 python3.14 python3 \
 	  if command -v $$c >/dev/null 2>&1 && $$c -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; \
 	  then echo $$c; break; fi; done
 
-.PHONY: demo demo-quick demo-existing fishtail fishtail-large scaling bench lint test test-fast test-rounding venv clean docs docs-figures
+.PHONY: demo demo-quick demo-existing fishtail fishtail-large scaling bench lint test test-fast test-long test-rounding venv clean docs docs-figures
 
 $(VENV)/.installed: pyproject.toml
 	@py=$$($(FIND_PYTHON)); \
@@ -55,7 +55,12 @@ test: lint
 	$(PY) -m pytest -q
 
 test-fast: venv
-	$(PY) -m pytest -q -m "not slow and not mpi"
+	$(PY) -m pytest -q -m "not slow and not mpi and not long"
+
+# demo-scale checks kept out of `make test` (its budget is 15 minutes on 2 cores): the
+# two-rank runs of the sine-Gordon, parametric and SVK demos against their serial runs
+test-long: venv
+	$(PY) -m pytest -q -m long
 
 # The numerical core under a second rounding condition: every array entering the fits and the
 # POD perturbed at 1e-15 relative (seeded; tests/conftest.py) and two BLAS threads. A verdict

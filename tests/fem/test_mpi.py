@@ -73,8 +73,9 @@ def _error_tolerance(row, singular_values, data_difference):
 
 
 @pytest.mark.mpi
-@pytest.mark.parametrize("demo", ["beam", "sine_gordon", "existing_code", "fishtail",
-                                  "parametric_membrane", "parametric_cantilever"])
+@pytest.mark.parametrize("demo", ["beam", "existing_code", "fishtail"] + [
+    pytest.param(d, marks=pytest.mark.long)
+    for d in ("sine_gordon", "parametric_membrane", "parametric_cantilever")])
 def test_quick_demos_two_ranks_equal_serial(demo, tmp_path, quick_demo, mpiexec):
     """Every demo runs under mpiexec -n 2 and reports the serial ROM errors, within what
     the rounding of its FOM data can move them (see ``_error_tolerance``). The serial run is

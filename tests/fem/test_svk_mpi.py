@@ -73,6 +73,7 @@ def _probe_fit_tolerance(method, probes, delta, y_fom, u_mid, n_steps, dt):
 
 
 @pytest.mark.mpi
+@pytest.mark.long
 def test_svk_demo_two_ranks_equals_serial(tmp_path, mpiexec):
     """The SVK demo (--smoke) on 1 and 2 ranks: the same FOM data, and per (method, r) the
     same tip and state errors - within a relative 1e-4 plus what the rounding of each
