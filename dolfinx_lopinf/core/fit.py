@@ -91,14 +91,9 @@ MISMATCH_FLOOR = 1e-9
 
 
 def _mass_candidates(mass):
-    """The mass models ``mass`` allows; "auto" without cvxpy (the SDP's solver) is Mh = I."""
-    if mass != "auto":
-        return (mass,)
-    try:
-        import cvxpy  # noqa: F401
-    except ImportError:
-        return ("identity",)
-    return ("identity", "learned")
+    """The mass models ``mass`` allows. The learned mass is our own interior point
+    (:mod:`~dolfinx_lopinf.core.mass`): "auto" takes both with or without cvxpy."""
+    return ("identity", "learned") if mass == "auto" else (mass,)
 
 
 @dataclass(frozen=True)
