@@ -327,6 +327,8 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         # near-exact data: certified, if at all, only against the floor GAP_FLOOR f_scale, and
         # the interior point's own misfit is not small beside the data's (f_const)
         x, gap, polished = polish(p, x, Lam, gap)
+        if gap <= gap_tol and stopped != "certified":
+            stopped += "; certified after the polish"
     cert = Certificate("psd-qp-ipm", gap <= gap_tol, it, seconds=time.perf_counter() - t0, method="hkm",
                        duality_gap=gap, details={"trace": trace, "stopped": stopped, "blocks": list(p.sizes),
                                                  "unknowns": n, "constraints": K, "polish": polished})
