@@ -348,19 +348,20 @@ def polish(p: QuadraticPSD, x, Lam, gap):
     X_k(x) > 0: steps d = argmin ||d||_W s.t. A (x + d) = b (W = sum_k P_k^T K(X_k^-1, X_k^-1)
     P_k, the log-det barrier's Hessian: its unit ball about x is feasible, and it measures d
     in the blocks' own scale), each taken as far as 0.99 of the feasible length allows, while
-    the misfit falls by 10 % a step. Since A x = b is solvable, the bound f >= 0 holds: the gap against it is
-    f(x') plus the rounding of the residual, (||r|| + (n + 2) u (|| |A| |x'| || + ||b||))^2,
-    over the reference; the multipliers' bound g(Lambda) holds as before. The smaller is kept,
-    and x only when it lowers the gap.
+    the misfit falls by 10 % a step. f >= 0 bounds the optimum from below - tightly where
+    A x = b is solvable, as in the polynomial fit - and the gap against it is f(x') plus the
+    rounding of the residual, (||r|| + (n + 2) u (|| |A| |x'| || + ||b||))^2, over the
+    reference; the multipliers' bound g(Lambda) holds as before. The smaller gap is kept, and
+    x' only when it lowers the gap.
 
     Why: on near-exact data the optimum is an exact fit beside a nearly singular Gram matrix
     (the data's potential is a sum of few squares), the interior point's Newton systems
-    (H = A^T A) stall at ~1e-8 of ||b|| on the central path, a misfit 10-20x the exact fit's,
-    and its gap is small only against the floor GAP_FLOOR f_scale. For any problem whose
-    equations A x = b are not solvable the steps end where they stop lowering f.
+    (H = A^T A) stall on the central path at a misfit 10-60x the exact fit's (the SVK
+    probes), and its gap is small only against the floor GAP_FLOOR f_scale. Where a cone
+    blocks the way to A x = b the steps end where they stop lowering f.
     Returns (x', its gap, a record)."""
     x1, f0 = x, p.objective(x)
-    f1, steps, t = f0, [], 0.0
+    f1, steps = f0, []
     for _ in range(POLISH_STEPS):
         X = p.slacks(x1)
         try:
@@ -395,5 +396,5 @@ def polish(p: QuadraticPSD, x, Lam, gap):
     gap1 = min(gap_lam, gap_zero)
     record = {"steps": steps, "misfit_before": f0, "misfit_after": f1, "gap_before": float(gap)}
     if not gap1 <= gap:  # nothing gained: the interior point's answer
-        return x, gap, {**record, "kept": "interior point"}
+        return x, gap, {**record, "misfit_after": f0, "kept": "interior point"}
     return x1, gap1, {**record, "bound": "zero" if gap_zero <= gap_lam else "multipliers"}

@@ -277,12 +277,14 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
             (:mod:`dolfinx_lopinf.core.polynomial.sos`), and by Clarabel only if ours ends
             with a gap above :data:`FALLBACK_GAP` (or none): Clarabel's answer is kept if it is
             certified and its misfit is not above ours (``fallback_from`` in the
-            certificate), else ours (``fallback_tried``); the other constraints by Clarabel. ``"ipm"``: the sos fit by our
-            interior point alone; ``"cvxpy"``: every constrained fit by Clarabel. Ours is
-            certified and 10-15x faster than Clarabel with the same residual: on noisy data,
-            and on near-exact data through its polish (:func:`~dolfinx_lopinf.core.lsq.
-            psd_qp.polish`: the SVK cantilever's probes, relative residual 4.60e-9 / 4.49e-9
-            at r = 4 / 6 against Clarabel's 4.61e-9 / 4.47e-9).
+            certificate), else ours (``fallback_tried``); the other constraints by Clarabel.
+            ``"ipm"``: the sos fit by our interior point alone; ``"cvxpy"``: every constrained
+            fit by Clarabel. Ours is 10-50x faster than Clarabel with the same residual, on
+            noisy data and, through its polish (:func:`~dolfinx_lopinf.core.lsq.psd_qp.polish`),
+            on near-exact data (the SVK cantilever's probes at r = 4 / 6 / 8: relative residual
+            2.89e-9 / 3.03e-9 / 1.96e-9 against Clarabel's 2.91e-9 / 2.96e-9 / 2.04e-9). Where
+            the data are not a polynomial (neo-Hookean probes) it stops uncertified at gaps
+            ~1e-6 and says so, with a lower residual than Clarabel's answer there.
         strict: raise SolverFailedError when a constrained fit is not certified.
 
     Returns:
@@ -339,10 +341,12 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
             theta_c, G_c, info_c = _solve_cvxpy(R, z, norms, r, m, damping, constraint, eps,
                                                 eps_gram, sig, p_pot)
             tried = ("solver", "status", "duality_gap", "iterations", "solve_seconds", "excess_residual")
-            # Clarabel's answer only if certified and not above our feasible point's misfit
-            # (on the neo-Hookean probes, r = 4, its "optimal_inaccurate" answer was
-            # certified in its own terms with an excess residual 12 % above ours)
-            if info_c["certified"] and info_c["excess_residual"] <= solver_info["excess_residual"] * (1 + 1e-6):
+            # Clarabel's answer only if certified and not worse than our feasible point by
+            # more than 0.1 % in misfit (a tie goes to the certified one; on the neo-Hookean
+            # probes, r = 4, its "optimal_inaccurate" answer, certified in its own terms, had an
+            # excess residual 12 % above ours)
+            if info_c["certified"] and \
+                    info_c["excess_residual"] <= solver_info["excess_residual"] * (1 + 1e-3):
                 info_c["fallback_from"] = {k: solver_info[k] for k in tried}
                 theta, G, solver_info = theta_c, G_c, info_c
             else:
