@@ -114,9 +114,8 @@ def main(argv=None):
     render_input = inputs[-1]  # an unseen input
     # fields kept for the renders: the first 50 ms after the input starts (where the tip's
     # extremes are picked from the output) and the GIF frames
-    n_end = int(round(t_end / dt))
     early = list(range(int(round(0.1 / dt)), int(round(0.15 / dt)) + 1))
-    gif_steps = list(range(int(round(t_end / dt)) // 40, int(round(t_end / dt)) + 1, int(round(t_end / dt)) // 40))
+    gif_steps = list(range(n_steps // 40, n_steps + 1, n_steps // 40))
     # only the training run's states are stored, on disk, in the POD inner product:
     # W = M gives V^T M V = I, so the reduced mass that L-OpInf fixes to I is exact (it uses
     # the FOM mass matrix; --basis euclidean is the paper's black-box POD).
@@ -131,14 +130,14 @@ def main(argv=None):
                                         t_keep=t_train, snap_steps=steps, energy_every=energy_every)
         if name == render_input:  # tip extremes, mid-run and the end; drop the other fields
             render_steps = [max(early, key=lambda k: Y[k]), min(early, key=lambda k: Y[k]),
-                            n_end // 2, n_end]
+                            n_steps // 2, n_steps]
             fields = {k: v for k, v in fields.items() if k in set(render_steps + gif_steps)}
         fom[name] = dict(Y=Y, E=E, seconds=seconds, fields=fields)
         if harness.is_root(comm):  # keep the FOM's outputs whatever happens later
             out.mkdir(parents=True, exist_ok=True)
             np.savez(out / f"fom_{name}.npz", t=dt * np.arange(len(Y)), Y=Y, E=E,
                      t_energy=dt * energy_every * np.arange(len(E)), seconds=seconds)
-            print(f"FOM {name}: {int(round(t_end / dt))} steps in {seconds:.1f} s, "
+            print(f"FOM {name}: {n_steps} steps in {seconds:.1f} s, "
                   f"max |y| = {np.abs(Y).max():.3e} m", flush=True)
         if name == args.train:  # basis right away: a training run too poor for r fails fast
             r_values, V_all, Qh_full, pod_lam, snapshot_disk, pod_s = _training_basis(
@@ -200,7 +199,7 @@ def main(argv=None):
         hull_density=scene.HULL_DENSITIES[args.hull_density],
         pod_singular_values=np.sqrt(np.maximum(pod_lam[:20], 0)).tolist())
     harness.write_metrics(out, metrics)
-    t = dt * np.arange(int(round(t_end / dt)) + 1)
+    t = dt * np.arange(n_steps + 1)
     for name in inputs:
         outputs, energies = {"FOM": fom[name]["Y"]}, {"FOM": fom[name]["E"]}
         for (method, r, nm_), (tr, _, e_rom) in sorted(rom_plot.items(), key=lambda kv: (kv[0][0] != "lopinf", kv[0][1])):

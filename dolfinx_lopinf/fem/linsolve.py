@@ -526,6 +526,7 @@ class StepSolver:
         guess's image, when the caller knows it: the warm start's residual then costs no
         product with A) and fill ``image`` with A x of the answer (the caller's next guess
         image, when it combines earlier answers); the other solvers ignore both."""
+        b_norm = b.norm() if self.subspace is not None else None  # the tests' scale (b is kept)
         if self.iterative:
             rtol = self._rtol if extrapolated else min(self._rtol, RTOL_COLD)
             self.ksp.setTolerances(rtol=rtol, atol=ATOL_REL * b.norm(), divtol=self._dtol,
@@ -542,7 +543,6 @@ class StepSolver:
             # a projection as close as the factor's own answers is accepted too (without this
             # floor, steps whose tolerance falls below a block low-rank factor's residual
             # would all be substitutions)
-            b_norm = b.norm()
             tol = max(self._rtol * self._ref.norm(), 2.0 * self.factor_residual * b_norm,
                       ATOL_REL * b_norm)
             accepted = self.subspace.project(b, x, tol, image)[0]
@@ -562,7 +562,6 @@ class StepSolver:
             self.subspace.extend(x, b, image)
             image.copy(self._ref)
             self._ref.aypx(-1.0, b)  # b - A x
-            b_norm = b.norm()
             if b_norm > 0:
                 rel = self._ref.norm() / b_norm
                 self.factor_residual_max = max(self.factor_residual_max, rel)

@@ -232,6 +232,19 @@ def _add_kernels(p: QuadraticPSD, S, Xi, Lam):
     return S
 
 
+def _step_to_boundary(pairs) -> float:
+    """The largest a with M + a dM >= 0 for every (M > 0, dM) of ``pairs`` (inf if none
+    bounds it): 1 / the most negative eigenvalue of R^-1 dM R^-T, M = R R^T. LinAlgError
+    where an M is not positive definite."""
+    a = np.inf
+    for Mk, dMk in pairs:
+        Ri = np.linalg.inv(np.linalg.cholesky(Mk))
+        ev = np.linalg.eigvalsh(Ri @ dMk @ Ri.T)[0]
+        if ev < 0:
+            a = min(a, -1.0 / ev)
+    return a
+
+
 def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
     """The interior point from the strictly feasible x0: (x, Certificate)."""
     t0 = time.perf_counter()
@@ -278,13 +291,7 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
             return dx, dX, dL
 
         def step(dX, dL, X=X, Lam=Lam):
-            a = 1.0
-            for Mk, dMk in list(zip(X, dX)) + list(zip(Lam, dL)):
-                Ri = np.linalg.inv(np.linalg.cholesky(Mk))
-                ev = np.linalg.eigvalsh(Ri @ dMk @ Ri.T)[0]
-                if ev < 0:
-                    a = min(a, -1.0 / ev)
-            return a
+            return min(1.0, _step_to_boundary(list(zip(X, dX)) + list(zip(Lam, dL))))
 
         XL = [Xk @ Lk for Xk, Lk in zip(X, Lam)]
         try:
@@ -371,14 +378,9 @@ def polish(p: QuadraticPSD, x, Lam, gap):
             Aw = scipy.linalg.solve_triangular(L, p.A.T, lower=True, check_finite=False).T  # A L^-T
             y = scipy.linalg.lstsq(Aw, p.b - p.A @ x1, check_finite=False, lapack_driver="gelsd")[0]
             d = scipy.linalg.solve_triangular(L, y, lower=True, trans="T", check_finite=False)
-            Ris = [np.linalg.inv(np.linalg.cholesky(Xk)) for Xk in X]
+            t_max = _step_to_boundary([(Xk, Xk1 - Xk) for Xk, Xk1 in zip(X, p.slacks(x1 + d))])
         except np.linalg.LinAlgError:
             break
-        t_max = np.inf
-        for Ri, Xk, Xk1 in zip(Ris, X, p.slacks(x1 + d)):
-            ev = np.linalg.eigvalsh(Ri @ (Xk1 - Xk) @ Ri.T)[0]
-            if ev < 0:
-                t_max = min(t_max, -1.0 / ev)
         t = 1.0 if t_max > 1.0 else 0.99 * t_max
         x_try = x1 + t * d
         f_try = p.objective(x_try)

@@ -140,6 +140,7 @@ def _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, p
     if A_b.shape[1]:
         b = scipy.linalg.lstsq(A_b, z - A_s @ x, check_finite=False)[0]
         theta.append(b)
+    min_eig_gram = float(np.linalg.eigvalsh(G).min())  # no projection here: raw = returned
     info = {"solver": "sos-ipm", "status": cert.status, "certified": bool(cert.converged),
             "iterations": cert.iterations, "duality_gap": float(cert.duality_gap),
             "solve_seconds": time.perf_counter() - t0, "objective": f,
@@ -148,7 +149,7 @@ def _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, p
             "excess_residual": float(np.sqrt(f / max(float(z @ z), 1e-300))),
             "stopped": cert.details["stopped"], "unknowns": n, "ipm_trace": cert.details["trace"],
             "polish": cert.details["polish"],
-            "min_eig_gram": float(np.linalg.eigvalsh(G).min()), "min_eig_gram_raw": float(np.linalg.eigvalsh(G).min())}
+            "min_eig_gram": min_eig_gram, "min_eig_gram_raw": min_eig_gram}
     return np.concatenate(theta), G, info
 
 
