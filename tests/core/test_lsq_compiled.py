@@ -153,7 +153,7 @@ def test_compiled_start_is_the_numpy_paths(kind, r):
 
 
 def test_compiled_kernel_constants_are_the_numpy_paths():
-    for name in ("STEP_FRACTION", "STALL_STEP", "STALL_GAP", "STALL_RUN"):
+    for name in ("STEP_FRACTION", "STALL_STEP", "STALL_GAP", "STALL_RUN", "NEAR_GAP", "NEAR_FLAT"):
         assert getattr(_compiled, name) == getattr(ipm, name), name
 
 

@@ -32,9 +32,10 @@ import numpy as np
 from .. import compiled as _jit
 
 # status bits returned by the kernel
-WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE = 1, 2, 4, 8, 16, 32
+WATCH, CERTIFY, MAX_ITER, X_NOT_PD, SCHUR_NOT_PD, NOT_FINITE, NEAR = 1, 2, 4, 8, 16, 32, 64
 STEP_FRACTION = 0.98  # the numpy path's (ipm.STEP_FRACTION)
 STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3  # ipm.STALL_STEP, ipm.STALL_GAP, ipm.STALL_RUN
+NEAR_GAP, NEAR_FLAT = 10.0, 0.5  # ipm.NEAR_GAP, ipm.NEAR_FLAT
 
 _dpotrf = _dtrsv = _spotrf = _strsv = _dsymv = _dsytrd = None  # bound to LAPACK/BLAS by kernels()
 
@@ -437,7 +438,8 @@ def _inverses(X, Lam, S, Xi, Lw):
 def _status(trace, it, rel, a, gap_tol, watch_below):
     """The status bits after iteration ``it``: WATCH (m mu / f = rel <= watch_below), CERTIFY
     (ipm._ask_certificate: rel <= gap_tol, a step below 1e-3, or a stall - STALL_RUN steps
-    below STALL_STEP with rel <= STALL_GAP gap_tol)."""
+    below STALL_STEP with rel <= STALL_GAP gap_tol), else NEAR (a step that did not halve
+    rel <= NEAR_GAP gap_tol)."""
     status = 0
     if rel <= watch_below:
         status |= WATCH
@@ -446,6 +448,8 @@ def _status(trace, it, rel, a, gap_tol, watch_below):
         stalled = stalled and trace[j, 0] < STALL_STEP
     if rel <= gap_tol or a < 1e-3 or stalled:
         status |= CERTIFY
+    elif it >= 2 and rel <= NEAR_GAP * gap_tol and rel > NEAR_FLAT * trace[it - 2, 2]:
+        status |= NEAR
     return status
 
 
