@@ -15,6 +15,7 @@ from dolfinx_lopinf.fem import linsolve  # noqa: E402
 from dolfinx_lopinf.fem._dolfinx import ufl  # noqa: E402
 from dolfinx_lopinf.fem.integrators import MidpointIntegrator  # noqa: E402
 from dolfinx_lopinf.fem.newmark import NewmarkIntegrator  # noqa: E402
+from dolfinx_lopinf.fem.fom import run  # noqa: E402
 from dolfinx_lopinf.fem.lagrangian import LagrangianSystem  # noqa: E402
 
 SCRIPT = Path(__file__).with_name("mpi_linsolve.py")
@@ -373,6 +374,49 @@ def test_subspace_accepts_projections_as_close_as_an_inexact_factor(system, dire
     Y_factor, _, _ = bar.newmark(*system, "direct", options={"pc_precision": "single"})
     # no less accurate than the inexact factor's own answers (within 2x), nor the time step's
     assert _rel(Y, Y_ref) <= max(2 * _rel(Y_factor, Y_ref), 0.05 * time_error)
+
+
+def test_subspace_accepts_projections_as_close_as_the_ones_it_accepts(system):
+    """Where the warm start is nearly exact (twice a period of a smooth input), 1e-2 of its
+    residual is a test no projection passes, and every such step was a substitution; a
+    projection within the median relative residual of the latest accepted projections is
+    accepted too. Here: the bar's run fills the window, then b = A x with x a held direction
+    plus a part outside the span sized to half that median, warm start x itself (residual
+    0): accepted - and a substitution once the window is emptied."""
+    sysm, load, E = system
+    with NewmarkIntegrator(sysm, bar.DT, rayleigh=bar.RAYLEIGH, input_forms=load,
+                           solver="direct+subspace") as nm:
+        nm.initialize([0.0])
+        run(nm, 40, inputs=lambda t: [50.0 * np.sin(2 * np.pi * t) ** 2])
+        solver, A = nm.solver, nm.solver.subspace.A
+        median = solver.projection_residual
+        assert median > 0 and solver.stats()["projection_residual"] == median
+        x_true, e, b, x = (A.createVecRight() for _ in range(4))
+        x_true.array_w[:] = solver.subspace.V[0]
+        e.setRandom()
+        A.mult(e, b)
+        A.mult(x_true, x)
+        b_norm = x.norm()
+        # the part of A e that the span misses, as a fraction of ||A x_true||
+        miss = solver.subspace.project(b, x.duplicate(), 0.0)[1] / b_norm
+        x_true.axpy(0.5 * median / miss, e)
+        A.mult(x_true, b)
+        for window in ("full", "empty"):
+            if window == "empty":
+                solver._projection_residuals.clear()
+            x_true.copy(x)
+            projected = solver.stats()["projected_solves"]
+            assert solver.solve(b, x, guess_image=b) > 0  # warm start x_true: residual 0
+            accepted = solver.stats()["projected_solves"] == projected + 1
+            assert accepted == (window == "full"), window
+            if accepted:
+                r = b.duplicate()
+                A.mult(x, r)
+                r.aypx(-1.0, b)
+                assert r.norm() <= median * b.norm()
+                r.destroy()
+        for vec in (x_true, e, b, x):
+            vec.destroy()
 
 
 def test_factored_newmark_releases_the_assembled_matrix_and_iterative_refuse(system):
