@@ -548,10 +548,9 @@ class StepSolver:
             # floor, steps whose tolerance falls below a block low-rank factor's residual
             # would all be substitutions), and one as close as the median of the latest
             # accepted projections (relative to ||b||): where the warm start is very good -
-            # twice per period of a smooth input - the first test asked for 1e-2 of its tiny
-            # residual and rejected projections more accurate than most it accepts (the
-            # fishtail at 203k dofs, 1,000 steps of the sine: 44 of 54 substitutions were
-            # such, their projections' median 2.1e-4 ||b|| against the accepted ones' 3.1e-4)
+            # twice per period of a smooth input - the first test asks for 1e-2 of its tiny
+            # residual and would reject projections more accurate than most it accepts
+            # (most of the fishtail's later substitutions were such: docs, benchmarks)
             tol = max(self._rtol * self._ref.norm(), 2.0 * self.factor_residual * b_norm,
                       self.projection_residual * b_norm, ATOL_REL * b_norm)
             accepted, rho = self.subspace.project(b, x, tol, image)

@@ -15,7 +15,7 @@ from dolfinx_lopinf.fem import linsolve  # noqa: E402
 from dolfinx_lopinf.fem._dolfinx import ufl  # noqa: E402
 from dolfinx_lopinf.fem.integrators import MidpointIntegrator  # noqa: E402
 from dolfinx_lopinf.fem.newmark import NewmarkIntegrator  # noqa: E402
-from dolfinx_lopinf.fem.fom import run  # noqa: E402
+from dolfinx_lopinf.fem.fom import run as run_loop  # noqa: E402
 from dolfinx_lopinf.fem.lagrangian import LagrangianSystem  # noqa: E402
 
 SCRIPT = Path(__file__).with_name("mpi_linsolve.py")
@@ -387,7 +387,7 @@ def test_subspace_accepts_projections_as_close_as_the_ones_it_accepts(system):
     with NewmarkIntegrator(sysm, bar.DT, rayleigh=bar.RAYLEIGH, input_forms=load,
                            solver="direct+subspace") as nm:
         nm.initialize([0.0])
-        run(nm, 40, inputs=lambda t: [50.0 * np.sin(2 * np.pi * t) ** 2])
+        run_loop(nm, 40, inputs=lambda t: [50.0 * np.sin(2 * np.pi * t) ** 2])
         solver, A = nm.solver, nm.solver.subspace.A
         median = solver.projection_residual
         assert median > 0 and solver.stats()["projection_residual"] == median

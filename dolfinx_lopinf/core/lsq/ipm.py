@@ -37,9 +37,9 @@ STEP_FRACTION = 0.98
 STALL_STEP, STALL_GAP, STALL_RUN = 0.1, 1e3, 3
 #: near the tolerance, a step that does not halve m mu / f (rel <= NEAR_GAP gap_tol and
 #: rel > NEAR_FLAT x the previous rel) asks for the certificate too: m mu / f overstates the
-#: certified gap (measured: the chain's r = 12 fit crept from 1.5e-8 to 1.1e-8 over ten
-#: short steps, certified at 3e-9 when the stall test finally asked) - once per halving of
-#: m mu / f (:class:`_NearAsks`); without one the loop goes on (only the tests above end it)
+#: certified gap there (the face multipliers of Problem.dual_gap bound it more tightly, and
+#: short steps can creep towards gap_tol for many iterations) - once per halving of m mu / f
+#: (:class:`_NearAsks`); without one the loop goes on (only the tests above end it)
 NEAR_GAP, NEAR_FLAT = 10.0, 0.5
 #: mixed precision: from MIXED_FROM_N unknowns on (r >= 16 with two blocks), while
 #: m mu / f > MIXED_ABOVE_GAP, the Schur matrix is factored in float32 (LAPACK spotrf: half the
@@ -66,9 +66,9 @@ def _ask_certificate(trace, gap_tol) -> int:
 
 
 class _NearAsks:
-    """A flat step near the tolerance asks for the certificate once per halving of m mu / f
-    (a certificate costs more than a small-r iteration: asking at every flat step made the
-    mixed set's r = 4 fit 4x slower)."""
+    """A flat step near the tolerance asks for the certificate once per halving of m mu / f:
+    a certificate costs more than a small-r iteration, so asking at every flat step would
+    cost more than it saves."""
 
     def __init__(self):
         self.last = np.inf
