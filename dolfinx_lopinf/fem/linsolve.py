@@ -293,6 +293,9 @@ SUBSPACE_RTOL = 1e-2
 #: and the median relative residual of this many latest accepted projections (once there are
 #: that many; :meth:`StepSolver.solve`)
 FACTOR_RESIDUAL_WINDOW = 16
+#: the second floor accepts a projection only if its residual is at most this fraction of the
+#: warm start's (those it answered on the fishtail improved on it 15-100x)
+FLOOR_GAIN = 0.1
 #: at most this many directions (``subspace_size`` in ``petsc_options`` overrides); when full,
 #: the half that carries the recent solutions is kept
 SUBSPACE_SIZE = 64
@@ -550,9 +553,13 @@ class StepSolver:
             # accepted projections (relative to ||b||): where the warm start is very good -
             # twice per period of a smooth input - the first test asks for 1e-2 of its tiny
             # residual and would reject projections more accurate than most it accepts
-            # (most of the fishtail's later substitutions were such: docs, benchmarks)
-            tol = max(self._rtol * self._ref.norm(), 2.0 * self.factor_residual * b_norm,
-                      self.projection_residual * b_norm, ATOL_REL * b_norm)
+            # (most of the fishtail's later substitutions were such: docs, benchmarks) - if
+            # the projection still improves on the warm start FLOOR_GAIN-fold (after a run of
+            # rough transients the median may be loose: it never takes a worse answer)
+            start = self._ref.norm()
+            tol = max(self._rtol * start, 2.0 * self.factor_residual * b_norm,
+                      min(self.projection_residual * b_norm, FLOOR_GAIN * start),
+                      ATOL_REL * b_norm)
             accepted, rho = self.subspace.project(b, x, tol, image)
             self.seconds["projection"] += time.perf_counter() - t0
             if accepted:
