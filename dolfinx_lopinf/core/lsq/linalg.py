@@ -23,16 +23,6 @@ def quadratic(H: np.ndarray, h: np.ndarray, c: float, x: np.ndarray) -> float:
     return float(x @ (H @ x) + 2.0 * h @ x + c)
 
 
-@functools.lru_cache(maxsize=64)
-def triu(m: int):
-    """np.triu_indices(m), read-only and cached (the face certificate asks for them a dozen
-    times per call, at sizes 1 - 20, and building them cost more than its arithmetic)."""
-    out = np.triu_indices(m)
-    for arr in out:
-        arr.setflags(write=False)
-    return out
-
-
 def sym(A: np.ndarray) -> np.ndarray:
     """Symmetric part of a matrix or a stack of matrices."""
     return 0.5 * (A + np.swapaxes(A, -1, -2))
@@ -220,7 +210,7 @@ def face_ranks(X: np.ndarray, Lam: np.ndarray) -> list:
 def face_basis(P: np.ndarray, iu) -> np.ndarray:
     """Columns vech(P E_ab P^T), a <= b, E_ab = e_a e_b^T + e_b e_a^T (one term if a = b): the
     vech coordinates of the symmetric matrices P A P^T."""
-    a, b = triu(P.shape[1])
+    a, b = vech_index(P.shape[1], 1).iu  # cached: built anew, they cost more than the work
     Pi, Pj = P[iu[0]], P[iu[1]]
     return Pi[:, a] * Pj[:, b] + (a != b) * Pi[:, b] * Pj[:, a]
 
@@ -228,7 +218,7 @@ def face_basis(P: np.ndarray, iu) -> np.ndarray:
 def unvech(c: np.ndarray, m: int) -> np.ndarray:
     """The symmetric m x m matrix whose upper triangle (row-major) is c."""
     A = np.zeros((m, m))
-    ia, ib = triu(m)
+    ia, ib = vech_index(m, 1).iu
     A[ia, ib] = A[ib, ia] = c
     return A
 

@@ -17,7 +17,6 @@ from .linalg import (
     from_eig,
     residual_norm2,
     symmetric_normal_equations,
-    triu,
     unvech,
     vech_index,
 )
@@ -324,7 +323,7 @@ class Problem:
         cols, lin, owner, pairs, eigvecs = [], [], [], [], []
         for k in range(nb):
             N = np.linalg.eigh(slack[k])[1][:, :widest[k]]
-            a, b = triu(widest[k])
+            a, b = vech_index(widest[k], 1).iu
             J = np.zeros((ix.n, len(a)))
             J[k * ix.nv:(k + 1) * ix.nv] = ix.Dw[:ix.nv, None] * face_basis(N, ix.iu)
             S_N = N.T @ slack[k] @ N
