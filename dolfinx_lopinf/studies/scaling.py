@@ -1,13 +1,16 @@
 """How the fishtail FOM's cost grows with the mesh: set-up phases, time per step, memory, ROM error.
 
     python -m dolfinx_lopinf.studies.scaling [--sizes 100k,200k,400k] [--ranks 1,2]
-        [--solvers auto] [--steps 200] [--out results/scaling] [--max-gb 18]
+        [--solvers auto] [--steps 200] [--repeats 1] [--out results/scaling] [--max-gb 18]
 
 For every (size, ranks, solver) the driver starts one worker,
 ``mpiexec -n <ranks> python -m dolfinx_lopinf.studies.scaling --case ...``, one at a time - a
 fresh process, so its peak memory is the case's own - and stops a case whose resident memory
-(all its processes) passes ``--max-gb``. Each worker writes ``cases/<size>_<ranks>_<solver>.json``;
-the driver gathers them into ``scaling.json`` and ``scaling.png``.
+(all its processes) passes ``--max-gb``. Each worker writes ``cases/<size>_<ranks>_<solver>.json``
+(``..._<k>.json`` for the k-th repeat); the driver gathers them into ``scaling.json`` and
+``scaling.png``. With ``--repeats N`` every case runs N times (all sizes, then all sizes again)
+and the table and the exponent take each case's fastest repeat: a small case's loop lasts a few
+seconds, and a slow spell of a shared machine moved its time by 20 % between sweeps.
 
 A worker, on the scene of :mod:`dolfinx_lopinf.scenes.fishtail` (P2, the paper's hull density):
 
@@ -32,6 +35,7 @@ of the least-squares fit s/step ~ dofs^p; set-up time and peak memory per rank b
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import resource
@@ -73,8 +77,13 @@ def _peak_gb(comm) -> list[float]:
     return comm.allgather(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9)
 
 
+def _case_name(size: str, ranks: int, solver: str, repeat: int) -> str:
+    """The case's file stem; repeats after the first carry their index."""
+    return f"{size}_{ranks}_{solver}" + (f"_{repeat}" if repeat else "")
+
+
 def run_case(size: str, solver: str, steps: int, out: Path, *, r: int = 2,
-             petsc_options: dict | None = None) -> dict | None:
+             petsc_options: dict | None = None, repeat: int = 0) -> dict | None:
     """One case on MPI.COMM_WORLD (collective); rank 0 writes and returns the record."""
     from ..fem._dolfinx import MPI
     from ..fem.fom import run
@@ -144,9 +153,9 @@ def run_case(size: str, solver: str, steps: int, out: Path, *, r: int = 2,
         "peak_gb_after_phase": {k: max(v) for k, v in peaks.items()},
         "rom_r": r, "rom_output_error": rom_error, "rom_seconds": rom_s,
         "output": Y.tolist(), "load_average": os.getloadavg()[0],
-        "petsc_options": petsc_options or {},
+        "petsc_options": petsc_options or {}, "repeat": repeat,
     }
-    path = out / "cases" / f"{size}_{comm.size}_{solver}.json"
+    path = out / "cases" / f"{_case_name(size, comm.size, solver, repeat)}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(record))
     return record
@@ -197,13 +206,16 @@ def _tree_rss_gb(pid: int) -> float:
     return total / 1e9
 
 
-def _run_worker(size, ranks, solver, steps, out, max_gb, python, mpiexec, petsc_options) -> dict:
+def _run_worker(size, ranks, solver, steps, out, max_gb, python, mpiexec, petsc_options,
+                repeat=0) -> dict:
     """Start one case under mpiexec and watch its memory; the record, or why there is none."""
     cmd = [mpiexec, "-n", str(ranks), python, "-m", "dolfinx_lopinf.studies.scaling", "--case",
-           "--sizes", size, "--solvers", solver, "--steps", str(steps), "--out", str(out)]
+           "--sizes", size, "--solvers", solver, "--steps", str(steps), "--out", str(out),
+           "--repeat-index", str(repeat)]
     if petsc_options:
         cmd += ["--petsc-options", json.dumps(petsc_options)]
-    log = out / "logs" / f"{size}_{ranks}_{solver}.log"
+    name = _case_name(size, ranks, solver, repeat)
+    log = out / "logs" / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     t0, peak_tree = time.perf_counter(), 0.0
     with open(log, "w") as f:
@@ -216,7 +228,7 @@ def _run_worker(size, ranks, solver, steps, out, max_gb, python, mpiexec, petsc_
                 return {"size": size, "ranks": ranks, "solver": solver,
                         "stopped": f"resident memory {peak_tree:.1f} GB > --max-gb {max_gb}"}
             time.sleep(1.0)
-    path = out / "cases" / f"{size}_{ranks}_{solver}.json"
+    path = out / "cases" / f"{name}.json"
     if proc.returncode != 0 or not path.exists():
         return {"size": size, "ranks": ranks, "solver": solver,
                 "stopped": f"exit code {proc.returncode}; see {log}"}
@@ -234,41 +246,66 @@ def fit_exponent(dofs, seconds) -> float | None:
     return float(np.polyfit(np.log(dofs), np.log(seconds), 1)[0])
 
 
+def fastest_repeats(records: list[dict]) -> list[dict]:
+    """One record per case (size, ranks, solver asked for, steps): the repeat with the fewest
+    seconds per step - the least disturbed by whatever else the machine ran - with every
+    repeat's s/step in ``repeats_seconds_per_step`` (sorted)."""
+    groups: dict[tuple, list[dict]] = {}
+    for r in records:
+        groups.setdefault((r["size"], r["ranks"], r["solver"], r["steps"]), []).append(r)
+    best = []
+    for group in groups.values():
+        rec = dict(min(group, key=lambda r: r["seconds_per_step"]))
+        rec["repeats_seconds_per_step"] = sorted(r["seconds_per_step"] for r in group)
+        best.append(rec)
+    return best
+
+
 def summarise(records: list[dict]) -> dict:
     """The table rows, the fitted exponents per (ranks, solver asked for), and each case's output
-    deviation from the direct solver's at the same size and ranks."""
+    deviation from the direct solver's at the same size and ranks.
+
+    A case run several times (``--repeats``) enters the table and the exponent with its fastest
+    repeat; ``exponent_median`` is the fit through the medians of the repeats."""
     done = [r for r in records if "stopped" not in r]
 
     def deviation(rec, ref):
-        if ref is None or ref is rec or len(ref["output"]) != len(rec["output"]):
+        if ref is None or len(ref["output"]) != len(rec["output"]):
             return None
         a, b = np.array(rec["output"]), np.array(ref["output"])
         return float(np.abs(a - b).max() / np.abs(b).max())
 
     for rec in done:
-        same = [d for d in done if d["size"] == rec["size"] and d["steps"] == rec["steps"]]
+        # other cases at this size: not the record itself, nor a repeat of it
+        same = [d for d in done if d["size"] == rec["size"] and d["steps"] == rec["steps"]
+                and (d["ranks"], d["solver"]) != (rec["ranks"], rec["solver"])]
         rec["output_deviation_vs_direct"] = deviation(rec, next(
             (d for d in same if d["ranks"] == rec["ranks"] and d["resolved_solver"] == "direct"), None))
         rec["output_deviation_vs_1_rank"] = deviation(rec, next(
             (d for d in same if d["ranks"] == 1 and d["resolved_solver"] == rec["resolved_solver"]), None))
+    best = fastest_repeats(done)
     exponents = {}
     # grouped by the solver asked for: "auto" resolves to different solvers with the size
-    for key in sorted({(r["ranks"], r["solver"]) for r in done}):
-        group = sorted((r for r in done if (r["ranks"], r["solver"]) == key),
+    for key in sorted({(r["ranks"], r["solver"]) for r in best}):
+        group = sorted((r for r in best if (r["ranks"], r["solver"]) == key),
                        key=lambda r: r["n_dofs"])
+        dofs = [r["n_dofs"] for r in group]
         exponents[f"{key[0]} ranks, {key[1]}"] = {
-            "dofs": [r["n_dofs"] for r in group],
+            "dofs": dofs,
             "seconds_per_step": [r["seconds_per_step"] for r in group],
-            "exponent": fit_exponent([r["n_dofs"] for r in group], [r["seconds_per_step"] for r in group]),
-            "exponent_cpu": fit_exponent([r["n_dofs"] for r in group],
-                                         [r["cpu_seconds_per_step"] for r in group]),
+            "repeats": [len(r["repeats_seconds_per_step"]) for r in group],
+            "exponent": fit_exponent(dofs, [r["seconds_per_step"] for r in group]),
+            "exponent_median": fit_exponent(
+                dofs, [float(np.median(r["repeats_seconds_per_step"])) for r in group]),
+            "exponent_cpu": fit_exponent(dofs, [r["cpu_seconds_per_step"] for r in group]),
         }
     table = [{k: r.get(k) for k in ("n_dofs", "ranks", "resolved_solver", "setup_seconds",
-                                     "seconds_per_step", "cpu_seconds_per_step", "iterations_per_step",
+                                     "seconds_per_step", "repeats_seconds_per_step",
+                                     "cpu_seconds_per_step", "iterations_per_step",
                                      "peak_gb_per_rank", "rom_output_error",
                                      "output_deviation_vs_direct", "output_deviation_vs_1_rank",
                                      "load_average")}
-             for r in sorted(done, key=lambda r: (r["ranks"], r["solver"], r["n_dofs"]))]
+             for r in sorted(best, key=lambda r: (r["ranks"], r["solver"], r["n_dofs"]))]
     return {"table": table, "exponents": exponents,
             "stopped": [r for r in records if "stopped" in r]}
 
@@ -279,7 +316,7 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    done = [r for r in records if "stopped" not in r]
+    done = fastest_repeats([r for r in records if "stopped" not in r])
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
     for i, (label, e) in enumerate(sorted(exponents.items())):
         group = sorted((r for r in done if f"{r['ranks']} ranks, {r['solver']}" == label),
@@ -289,6 +326,9 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
         s = np.array([r["seconds_per_step"] for r in group])
         name = label if e["exponent"] is None else f"{label}: p = {e['exponent']:.2f}"
         axes[0].loglog(n, s, "o", color=colour, label=name)
+        every = [(r["n_dofs"], t) for r in group for t in r["repeats_seconds_per_step"][1:]]
+        if every:
+            axes[0].loglog(*zip(*every), ".", color=colour, alpha=0.5, ms=4)
         if e["exponent"] is not None:
             c = np.polyfit(np.log(n), np.log(s), 1)
             grid = np.geomspace(n.min(), n.max(), 20)
@@ -304,7 +344,7 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
         s0 = min(r["seconds_per_step"] for r in done if r["n_dofs"] == n[0])
         axes[0].loglog(n, s0 * n / n[0], "k:", lw=1, label="slope 1")
     axes[0].set(xlabel="dofs", ylabel="seconds per Newmark step",
-                title="time per step (o wall, fitted line; x CPU)")
+                title="time per step (o wall, fastest repeat, fitted line; . other repeats; x CPU)")
     axes[1].set(xlabel="dofs", ylabel="seconds", title="set-up (mesh to factorisation)")
     axes[2].set(xlabel="dofs", ylabel="GB", title="peak resident memory per rank")
     for ax in axes:
@@ -318,23 +358,32 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
     plt.close(fig)
 
 
+def _repeats(seconds: list[float]) -> str:
+    """'-' for one run, else 'n: min-max' of the repeats' s/step."""
+    return "-" if len(seconds) < 2 else f"{len(seconds)}: {min(seconds):.3f}-{max(seconds):.3f}"
+
+
 def _table(summary: dict) -> str:
-    head = ("dofs", "ranks", "solver", "setup s", "s/step", "cpu s/step", "its", "GB/rank",
-            "ROM err", "dev vs direct", "dev vs 1 rank", "load")
+    head = ("dofs", "ranks", "solver", "setup s", "s/step", "repeats", "cpu s/step", "its",
+            "GB/rank", "ROM err", "dev vs direct", "dev vs 1 rank", "load")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in summary["table"]:
         dev, dev1 = r["output_deviation_vs_direct"], r["output_deviation_vs_1_rank"]
         lines.append(" | ".join([
             f"{r['n_dofs']:,}", str(r["ranks"]), r["resolved_solver"], f"{r['setup_seconds']:.1f}",
-            f"{r['seconds_per_step']:.3f}", f"{r['cpu_seconds_per_step']:.3f}",
+            f"{r['seconds_per_step']:.3f}", _repeats(r.get("repeats_seconds_per_step") or []),
+            f"{r['cpu_seconds_per_step']:.3f}",
             f"{r['iterations_per_step']:.1f}", f"{r['peak_gb_per_rank']:.2f}",
             f"{r['rom_output_error']:.2e}", "-" if dev is None else f"{dev:.1e}",
             "-" if dev1 is None else f"{dev1:.1e}", f"{r['load_average']:.1f}"]).join(["| ", " |"]))
     lines.append("")
     for label, e in summary["exponents"].items():
         if e["exponent"] is not None:
-            lines.append(f"* exponent of s/step in the dofs, {label}: {e['exponent']:.2f} "
-                         f"(CPU seconds: {e['exponent_cpu']:.2f})")
+            several = max(e.get("repeats") or [1]) > 1
+            lines.append(f"* exponent of s/step in the dofs, {label}: {e['exponent']:.2f}"
+                         + (" (fastest repeats; through the medians: "
+                            f"{e['exponent_median']:.2f})" if several else "")
+                         + f"; CPU seconds: {e['exponent_cpu']:.2f}")
     for r in summary["stopped"]:
         lines.append(f"* stopped {r['size']} {r['ranks']} ranks {r['solver']}: {r['stopped']}")
     return "\n".join(lines)
@@ -348,6 +397,9 @@ def main(argv=None):
     parser.add_argument("--solvers", default="auto", help="comma-separated solver names "
                         "(dolfinx_lopinf.fem.linsolve.SOLVERS)")
     parser.add_argument("--steps", type=int, default=200, help="Newmark steps per case")
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="run every case this many times (the sizes in turn, then again), and "
+                        "fit the exponent through each case's fastest repeat")
     parser.add_argument("--out", default="results/scaling")
     parser.add_argument("--max-gb", type=float, default=18.0,
                         help="stop a case whose processes hold more resident memory than this")
@@ -355,6 +407,7 @@ def main(argv=None):
     parser.add_argument("--collect", action="store_true",
                         help="run nothing: gather every case already in --out/cases into the JSON and figure")
     parser.add_argument("--case", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--repeat-index", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     from ..errors import InputError
     from ..fem.linsolve import check_solver
@@ -370,11 +423,12 @@ def main(argv=None):
         _lc(s)
     for s in solvers:
         check_solver(s)
-    if args.steps < 4 or not ranks or min(ranks) < 1:
-        raise InputError("--steps must be >= 4 and --ranks positive integers")
+    if args.steps < 4 or not ranks or min(ranks) < 1 or args.repeats < 1:
+        raise InputError("--steps must be >= 4, --ranks positive integers and --repeats >= 1")
     out = Path(args.out)
     if args.case:
-        return run_case(sizes[0], solvers[0], args.steps, out, petsc_options=options)
+        return run_case(sizes[0], solvers[0], args.steps, out, petsc_options=options,
+                        repeat=args.repeat_index)
     out.mkdir(parents=True, exist_ok=True)
     summary_path = out / "scaling.json"
     if args.collect:
@@ -382,19 +436,24 @@ def main(argv=None):
         return _write(out, records)
     bindir = Path(sys.executable).parent
     mpiexec = str(bindir / "mpiexec") if (bindir / "mpiexec").exists() else "mpiexec"
-    records = []
-    for size in sizes:
-        for n in ranks:
-            for solver in solvers:
-                rec = _run_worker(size, n, solver, args.steps, out, args.max_gb, sys.executable,
-                                  mpiexec, options)
-                records.append(rec)
-                print(f"{size} {n} ranks {solver}: " + (rec["stopped"] if "stopped" in rec else
-                      f"{rec['n_dofs']:,} dofs, set-up {rec['setup_seconds']:.1f} s, "
-                      f"{rec['seconds_per_step']:.3f} s/step, {rec['peak_gb_per_rank']:.2f} GB/rank, "
-                      f"ROM r=2 error {rec['rom_output_error']:.2e}"), flush=True)
-                summary = summarise(records)
-                summary_path.write_text(json.dumps({"cases": records, **summary}, indent=1))
+    records, stopped = [], set()
+    # the sizes in turn, then again: a slow spell of the machine then touches one repeat of
+    # several sizes rather than every repeat of one; a case stopped once is not run again
+    for repeat, size, n, solver in itertools.product(range(args.repeats), sizes, ranks, solvers):
+        if (size, n, solver) in stopped:
+            continue
+        rec = _run_worker(size, n, solver, args.steps, out, args.max_gb, sys.executable, mpiexec,
+                          options, repeat)
+        records.append(rec)
+        if "stopped" in rec:
+            stopped.add((size, n, solver))
+        print(f"{size} {n} ranks {solver}" + (f" (repeat {repeat + 1})" if repeat else "") + ": "
+              + (rec["stopped"] if "stopped" in rec else
+                 f"{rec['n_dofs']:,} dofs, set-up {rec['setup_seconds']:.1f} s, "
+                 f"{rec['seconds_per_step']:.3f} s/step, {rec['peak_gb_per_rank']:.2f} GB/rank, "
+                 f"ROM r=2 error {rec['rom_output_error']:.2e}"), flush=True)
+        summary = summarise(records)
+        summary_path.write_text(json.dumps({"cases": records, **summary}, indent=1))
     return _write(out, records)
 
 

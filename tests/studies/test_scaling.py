@@ -48,6 +48,7 @@ def test_summary_compares_with_direct():
     (["--sizes", "huge"], "size 'huge'"),
     (["--ranks", "two"], "--ranks must be integers"),
     (["--steps", "2"], "--steps must be >= 4"),
+    (["--repeats", "0"], "--repeats >= 1"),
 ])
 def test_bad_command_lines_are_refused(argv, match, tmp_path):
     with pytest.raises(InputError, match=match):
@@ -65,3 +66,27 @@ def test_tiny_case_end_to_end(tmp_path):
     assert set(data["cases"][0]["phases_seconds"]) >= {"gmsh", "distribute", "forms", "assemble", "solver"}
     assert (tmp_path / "scaling.png").stat().st_size > 10_000
     assert "| dofs | ranks |" in (tmp_path / "scaling.md").read_text()
+
+
+def test_repeats_enter_with_their_fastest_run():
+    def rec(n, s, repeat):
+        return {"size": str(n), "n_dofs": n, "ranks": 2, "solver": "auto", "resolved_solver": "x",
+                "output": [0.0, 1.0], "seconds_per_step": s, "cpu_seconds_per_step": s,
+                "setup_seconds": 1.0, "iterations_per_step": 0.1, "peak_gb_per_rank": 1.0,
+                "rom_output_error": 1e-3, "load_average": 0.1, "steps": 10, "repeat": repeat}
+    # a slow spell (x1.3) hit the first repeat of the small case and the second of the large
+    records = [rec(100, 1.3, 0), rec(800, 8.0, 0), rec(100, 1.0, 1), rec(800, 10.4, 1),
+               rec(100, 1.1, 2), rec(800, 8.8, 2)]
+    out = scaling.summarise(records)
+    e = out["exponents"]["2 ranks, auto"]
+    assert e["exponent"] == pytest.approx(1.0) and e["repeats"] == [3, 3]
+    assert e["exponent_median"] == pytest.approx(np.log(8.8 / 1.1) / np.log(8))
+    assert len(out["table"]) == 2 and out["table"][0]["repeats_seconds_per_step"] == [1.0, 1.1, 1.3]
+    table = scaling._table(out)
+    assert "3: 1.000-1.300" in table and "through the medians: 1.00" in table
+    assert scaling._case_name("100k", 2, "auto", 0) == "100k_2_auto"
+    assert scaling._case_name("100k", 2, "auto", 2) == "100k_2_auto_2"
+    # a repeat is not a reference for its own case: a direct case has no deviation from direct
+    direct = [dict(rec(100, 1.0, k), solver="direct", resolved_solver="direct") for k in (0, 1)]
+    direct[1]["output"] = [0.0, 1.5]
+    assert scaling.summarise(direct)["table"][0]["output_deviation_vs_direct"] is None
