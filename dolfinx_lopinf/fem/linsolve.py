@@ -92,6 +92,7 @@ from collections import deque
 import numpy as np
 
 from ._dolfinx import PETSc, dolfinx
+from ..core._blas import share_cores_among_ranks
 from ..errors import InputError
 
 fpetsc = dolfinx.fem.petsc
@@ -458,6 +459,7 @@ class StepSolver:
 
     def __init__(self, A, comm, solver: str, prefix: str, petsc_options: dict | None = None, *,
                  V=None, near_nullspace=None):
+        share_cores_among_ranks(comm)  # the projections' dense work: a rank's share of the cores
         self.name = resolve(solver, A.getSize()[0])
         self.iterative = self.name not in FACTORED
         self.iterations = 0

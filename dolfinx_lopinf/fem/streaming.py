@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from ._dolfinx import MPI, dolfinx
+from ..core._blas import share_cores_among_ranks
 from ..errors import InputError
 from .agreement import agree
 from .lagrangian import _on_space
@@ -79,6 +80,7 @@ class StreamingPOD:
         # the directory may differ between ranks (node-local disks); the sizes may not
         agree(V.mesh.comm, "StreamingPOD", problem, capacity=capacity, weight=weight is not None)
         self.V, self.comm = V, V.mesh.comm
+        share_cores_among_ranks(self.comm)  # the Gram updates' dense work: a rank's share
         self.n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self.capacity, self.weight = int(capacity), weight
         self.chunk = int(chunk) if chunk is not None else \

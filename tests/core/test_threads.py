@@ -79,3 +79,48 @@ def test_fit_threads_are_shared_among_mpi_ranks(monkeypatch):
     assert F.fit_threads() == 1
     monkeypatch.delitem(sys.modules, "mpi4py.MPI")
     assert F.fit_threads() == 8
+
+
+class _Comm:
+    """A communicator stand-in: ``size`` ranks, all on this node."""
+
+    def __init__(self, size):
+        self.size = size
+
+    def Split_type(self, kind):
+        return self
+
+    def Free(self):
+        pass
+
+
+def test_ranks_share_the_cores_blas_threads(monkeypatch):
+    """Under MPI each rank's BLAS gets its share of the cores, max(1, cores // ranks on the
+    node) - unless the user set the threads; one rank, nothing; the cap is undone on request."""
+    import os
+
+    from threadpoolctl import threadpool_info
+
+    from dolfinx_lopinf.core import _blas
+
+    def blas_threads():
+        return {i["filepath"]: i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    before = blas_threads()
+    cores = len(os.sched_getaffinity(0))
+    for name in _blas.THREAD_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setattr(_blas, "_comm_type_shared", lambda comm: 0)
+    monkeypatch.setattr(_blas, "_SHARED", {})
+    assert _blas.share_cores_among_ranks(_Comm(1)) is None and _blas._SHARED == {}
+    try:
+        assert _blas.share_cores_among_ranks(_Comm(2 * cores)) == 1
+        assert max(blas_threads().values()) == 1
+        assert _blas.share_cores_among_ranks(_Comm(2)) == 1  # once per process
+    finally:
+        _blas._SHARED["limit"].restore_original_limits()
+    assert blas_threads() == before
+    monkeypatch.setattr(_blas, "_SHARED", {})
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert _blas.share_cores_among_ranks(_Comm(2 * cores)) is None
+    assert blas_threads() == before
