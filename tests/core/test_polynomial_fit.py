@@ -171,7 +171,7 @@ def test_auto_falls_back_to_clarabel_when_ours_is_far_from_certified(monkeypatch
     assert c_ipm["solver"] == "sos-ipm" and not c_ipm["certified"]
 
 
-def test_an_iterate_lost_to_rounding_ends_the_interior_point_and_auto_takes_clarabel():
+def test_an_iterate_lost_to_rounding_ends_the_interior_point_and_auto_takes_clarabel(monkeypatch):
     """The SVK demo's projected-trajectory data at r = 4 (default size; closure-laden, fitted
     to 17 % at best): our interior point's iterate left its cone by rounding at iteration 38
     and the fit raised LinAlgError from a Cholesky factorisation. It now ends at the last
@@ -179,6 +179,7 @@ def test_an_iterate_lost_to_rounding_ends_the_interior_point_and_auto_takes_clar
     fine), with the residual of Clarabel's certified answer."""
     from pathlib import Path
 
+    from dolfinx_lopinf.core.lsq import psd_qp
     from dolfinx_lopinf.core.polynomial.fit import MidpointData
 
     z = np.load(Path(__file__).with_name("data") / "svk_trajectory_r4.npz")
@@ -187,6 +188,46 @@ def test_an_iterate_lost_to_rounding_ends_the_interior_point_and_auto_takes_clar
         warnings.simplefilter("ignore")
         ours = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
         ref = pl.fit_polynomial(data, constraint="sos", solver="cvxpy").certificate
-    assert ours["certified"] or "rounding" in ours["stopped"], ours["stopped"]
+    assert ours["certified"] or "rounding" in ours["stopped"] or "flat" in ours["stopped"], ours["stopped"]
     assert ours["duality_gap"] <= 1e-6 and ours["min_eig_gram"] >= 0
     assert abs(ours["relative_residual"] - ref["relative_residual"]) <= 1e-3 * ref["relative_residual"]
+    # (the gap still fell there while the complementarity was flat: stopping on the estimate
+    # alone ended it at a gap of 2e-5.) Which iteration rounding takes out of its cone depends
+    # on the BLAS: here a step to the boundary fails at the 30th (LinAlgError, as a Cholesky
+    # factorisation of an indefinite matrix does) - the iterate before it is the answer
+    real, calls = psd_qp._step_to_boundary, [0]
+
+    def fails_late(pairs):
+        calls[0] += 1
+        if calls[0] == 30:
+            raise np.linalg.LinAlgError("not positive definite")
+        return real(pairs)
+
+    monkeypatch.setattr(psd_qp, "_step_to_boundary", fails_late)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lost = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
+    assert "left its cone by rounding at iteration 15" in lost["stopped"], lost["stopped"]
+    assert lost["iterations"] == 15 and lost["min_eig_gram"] >= 0 and np.isfinite(lost["duality_gap"])
+
+
+def test_the_interior_point_hands_over_to_the_polish_where_it_is_flat_at_the_tolerance(monkeypatch):
+    """The SVK demo's probes at r = 6 (near-exact data): the gap estimate reaches gap_tol and
+    stays there (the complementarity's rounding floor) while the certified gap does not halve
+    either. Two such iterations end the interior point (flat at the tolerance) and the polish
+    certifies - the certificate and the misfit of the run that went on until its steps were
+    short (FLAT_NEAR = 0), in fewer iterations."""
+    from pathlib import Path
+
+    from dolfinx_lopinf.core.lsq import psd_qp
+    from dolfinx_lopinf.core.polynomial.fit import MidpointData
+
+    z = np.load(Path(__file__).with_name("data") / "svk_probes_r6.npz")
+    data = MidpointData(z["minus"], z["plus"], z["D1"], z["D2"], z["Ubar"], float(z["dt"]))
+    early = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
+    monkeypatch.setattr(psd_qp, "FLAT_NEAR", 0.0)
+    late = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
+    assert "flat at the tolerance" in early["stopped"] and "flat" not in late["stopped"]
+    assert early["certified"] and late["certified"]
+    assert early["iterations"] + 2 <= late["iterations"]
+    assert early["relative_residual"] <= 1.01 * late["relative_residual"]

@@ -44,6 +44,9 @@ STEP_FRACTION = 0.98
 #: from there where the data are fitted nearly exactly
 GAP_FLOOR = 1e-6
 SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
+#: the interior point stops where two iterations did not halve a gap estimate below
+#: FLAT_NEAR gap_tol (and the gap is not met): the polish goes on from there
+FLAT_NEAR = 10.0
 
 
 def _kernel_loop(P, Q, iu0, iu1, H):
@@ -60,8 +63,21 @@ def _kernel_loop(P, Q, iu0, iu1, H):
                                  + P[i, b] * Q[a, j])
 
 
+def _sym_scaled_lower(S, d):
+    """The lower triangle of S := sym(S) scaled by d on both sides, in place, in one pass:
+    S_ij = ((S_ij + S_ji) (d_i / 2)) d_j for i >= j (the upper triangle is left as it was;
+    the Cholesky factorisation reads the lower one). The operations of the numpy passes
+    S += S^T, S *= d/2 (rows), S *= d (columns), in their order: the same bits."""
+    n = S.shape[0]
+    for i in range(n):
+        hi = 0.5 * d[i]
+        for j in range(i + 1):
+            S[i, j] = ((S[i, j] + S[j, i]) * hi) * d[j]
+
+
 _KERNEL_SIGNATURES = {"_kernel_loop": "void(float64[:, ::1], float64[:, ::1], int64[::1], int64[::1], "
-                                      "float64[:, ::1])"}
+                                      "float64[:, ::1])",
+                      "_sym_scaled_lower": "void(float64[:, ::1], float64[::1])"}
 _KERNELS = _jit.KernelSet(globals(), _KERNEL_SIGNATURES, unavailable="the compiled psd kernel is unavailable")
 
 
@@ -76,6 +92,18 @@ def _kernel(P, Q, n):
         return H
     return kernel([(1.0, P, Q)], n)
 
+
+
+def sym_scaled_lower(S, d):
+    """:func:`_sym_scaled_lower` (compiled where numba is there; else the three numpy passes,
+    which also fill the upper triangle)."""
+    if _jit.resolve_backend("auto") == "numba":
+        _KERNELS.kernels()["_sym_scaled_lower"](S, np.ascontiguousarray(d, dtype=float))
+        return S
+    S += S.T
+    S *= 0.5 * d[:, None]
+    S *= d[None, :]
+    return S
 
 
 @functools.lru_cache(maxsize=32)
@@ -141,6 +169,24 @@ class QuadraticPSD:
             out.append((cols, float(vals[0])) if ok else None)
         return out
 
+    def block(self, k: int, x) -> np.ndarray:
+        """P_k x (a gather where P_k is a scaled selection)."""
+        sel = self.selections[k]
+        if sel is None:
+            return self.P[k] @ x
+        idx, scale = sel
+        return scale * x[idx]
+
+    def block_T(self, k: int, v) -> np.ndarray:
+        """P_k^T v (a scatter where P_k is a scaled selection)."""
+        sel = self.selections[k]
+        if sel is None:
+            return self.P[k].T @ v
+        idx, scale = sel
+        out = np.zeros(len(self.h))
+        out[idx] = scale * v
+        return out
+
     def objective(self, x) -> float:
         if self.A is not None:
             res = self.A @ x - self.b
@@ -153,11 +199,11 @@ class QuadraticPSD:
         return 2.0 * (self.H @ x + self.h)
 
     def slacks(self, x) -> list:
-        return [unvech(Pk @ x, nk) - Fk for Pk, Fk, nk in zip(self.P, self.F, self.sizes)]
+        return [unvech(self.block(k, x), nk) - Fk for k, (Fk, nk) in enumerate(zip(self.F, self.sizes))]
 
     def lin(self, Lam) -> np.ndarray:
         """sum_k P_k^T D vech(Lambda_k): the gradient of sum_k <Lambda_k, A_k(x)>."""
-        return sum(Pk.T @ (_vech(nk)[3] * vech(Lk)) for Pk, Lk, nk in zip(self.P, Lam, self.sizes))
+        return sum(self.block_T(k, _vech(nk)[3] * vech(Lk)) for k, (Lk, nk) in enumerate(zip(Lam, self.sizes)))
 
     @functools.cached_property
     def _H_factor(self):
@@ -186,9 +232,9 @@ class QuadraticPSD:
         if self.null is not None:
             n0 = self.sizes[0]
             w0 = _vech(n0)[3]
-            u = self.P[0].T @ (w0 * vech(Lam[0]))
-            u_rest = sum((Pk.T @ (_vech(nk)[3] * vech(Lk)) for Pk, Lk, nk in
-                          zip(self.P[1:], Lam[1:], self.sizes[1:])), np.zeros_like(u))
+            u = self.block_T(0, w0 * vech(Lam[0]))
+            u_rest = sum((self.block_T(k, _vech(nk)[3] * vech(Lk)) for k, (Lk, nk) in
+                          enumerate(zip(Lam, self.sizes)) if k), np.zeros_like(u))
             c = self.null.T @ (u + u_rest)  # the part to remove, in block 0's unknowns
             du = self.null @ c
             sel = self.selections[0]
@@ -259,21 +305,30 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
     Lam = [mu0 * np.linalg.inv(Xk) for Xk in X]
     trace, best, stopped = [], (np.inf, x, Lam), "max_iter"
     prev = (x, Lam)  # the last iterate inside the cones
+    S_buf = np.empty((n, n))  # the Schur matrix's buffer, assembled and factorised in place
+    gaps = []  # the certified gap where it was computed, else nan
     it = 0
     for it in range(1, max_iter + 1):
         X = p.slacks(x)
         mu = sum(float(np.sum(Xk * Lk)) for Xk, Lk in zip(X, Lam)) / m
         Xi = [np.linalg.inv(Xk) for Xk in X]
-        S = _add_kernels(p, 2.0 * p.H, Xi, Lam)
-        S += S.T  # 2 sym(S), in place (numpy buffers the overlapping transpose)
-        dd = 1.0 / np.sqrt(0.5 * np.diag(S))
-        S *= 0.5 * dd[:, None]
-        S *= dd[None, :]  # the equilibrated sym(S)
+
+        def schur(S=S_buf, Xi=Xi, Lam=Lam):
+            """The equilibrated sym(2 H + sum_k P_k^T K(X_k^-1, Lambda_k) P_k) (lower
+            triangle) in the buffer, and the scaling dd."""
+            np.multiply(p.H, 2.0, out=S)
+            _add_kernels(p, S, Xi, Lam)
+            dd = 1.0 / np.sqrt(np.diag(S))
+            return sym_scaled_lower(S, dd), dd
+
+        S, dd = schur()
         fac = None
         for shift in SHIFTS:
+            if shift:  # the failed factorisation overwrote the buffer: assembled again
+                S, dd = schur()
+                S[np.diag_indices(n)] += shift
             try:
-                fac = scipy.linalg.cho_factor(S if shift == 0.0 else S + shift * np.eye(n), lower=True,
-                                              check_finite=False)
+                fac = scipy.linalg.cho_factor(S, lower=True, overwrite_a=True, check_finite=False)
                 break
             except np.linalg.LinAlgError:
                 continue
@@ -283,10 +338,10 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         rd = p.gradient(x) - p.lin(Lam)
 
         def direction(R, rd=rd, Xi=Xi, dd=dd, fac=fac, Lam=Lam):
-            rhs = -rd + sum(Pk.T @ (_vech(nk)[3] * vech(sym(Xik @ Rk)))
-                            for Pk, Xik, Rk, nk in zip(p.P, Xi, R, p.sizes))
+            rhs = -rd + sum(p.block_T(k, _vech(nk)[3] * vech(sym(Xik @ Rk)))
+                            for k, (Xik, Rk, nk) in enumerate(zip(Xi, R, p.sizes)))
             dx = dd * scipy.linalg.cho_solve(fac, dd * rhs, check_finite=False)
-            dX = [unvech(Pk @ dx, nk) for Pk, nk in zip(p.P, p.sizes)]
+            dX = [unvech(p.block(k, dx), nk) for k, nk in enumerate(p.sizes)]
             dL = [sym(Xik @ (Rk - dXk @ Lk)) for Xik, Rk, dXk, Lk in zip(Xi, R, dX, Lam)]
             return dx, dX, dL
 
@@ -314,15 +369,24 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         f = p.objective(x)
         est = sum(float(np.sum(Xk * Lk)) for Xk, Lk in zip(X, Lam)) / p.reference(f)
         trace.append((a, sigma, est))
-        if est <= gap_tol or (len(trace) >= 3 and max(t[0] for t in trace[-3:]) < 0.05):
-            g = p.gap(x, Lam)
+        short = len(trace) >= 3 and max(t[0] for t in trace[-3:]) < 0.05
+        near = est <= FLAT_NEAR * gap_tol
+        gaps.append(p.gap(x, Lam) if short or near else np.nan)
+        # flat at the tolerance: two iterations that halved neither an estimate already within
+        # FLAT_NEAR gap_tol nor the certified gap (the complementarity's rounding floor on
+        # exact data; the short steps that end it there came three iterations later, each a
+        # Cholesky of the Schur matrix). Where the gap still falls - the dual residual's part,
+        # on data no potential fits - the iterations go on.
+        flat = near and len(trace) >= 3 and est > 0.5 * trace[-3][2] and gaps[-1] > 0.5 * gaps[-3]
+        if not np.isnan(gaps[-1]):
+            g = gaps[-1]
             if g < best[0]:
                 best = (g, x, Lam)
             if g <= gap_tol:
                 stopped = "certified"
                 break
-            if max(t[0] for t in trace[-3:]) < 0.05:
-                stopped = f"stalled at iteration {it}"
+            if short or flat:
+                stopped = f"stalled at iteration {it}" + (" (flat at the tolerance)" if flat and not short else "")
                 break
     if not np.isfinite(best[0]):
         best = (p.gap(x, Lam), x, Lam)
@@ -350,6 +414,22 @@ POLISH_STEPS = 8
 POLISH_PROGRESS = 0.9
 
 
+def least_norm(A, y):
+    """The least-norm least-squares solution of A d = y: LAPACK gels (an LQ or QR factorisation,
+    BLAS-3; a third of the SVD-based gelsd's time on the SVK polish's 522 x 1,026 systems),
+    gelsd where gels finds A singular or returns a non-finite answer."""
+    m, n = A.shape
+    gels, gels_lwork = scipy.linalg.lapack.get_lapack_funcs(("gels", "gels_lwork"), (A,))
+    work, info = gels_lwork(m, n, 1)
+    if info == 0:
+        rhs = np.zeros((max(m, n), 1))
+        rhs[:m, 0] = y
+        _, d, info = gels(A, rhs, lwork=int(work))
+        if info == 0 and np.all(np.isfinite(d)):
+            return d[:n, 0]
+    return scipy.linalg.lstsq(A, y, check_finite=False, lapack_driver="gelsd")[0]
+
+
 def polish(p: QuadraticPSD, x, Lam, gap):
     """The interior point's answer moved towards the fits of the data, A x = b, keeping every
     X_k(x) > 0: steps d = argmin ||d||_W s.t. A (x + d) = b (W = sum_k P_k^T K(X_k^-1, X_k^-1)
@@ -369,14 +449,18 @@ def polish(p: QuadraticPSD, x, Lam, gap):
     Returns (x', its gap, a record)."""
     x1, f0 = x, p.objective(x)
     f1, steps = f0, []
+    n = len(x1)
+    W, ones = np.empty((n, n)), np.ones(n)
     for _ in range(POLISH_STEPS):
         X = p.slacks(x1)
         try:
             Xi = [np.linalg.inv(Xk) for Xk in X]
-            W = _add_kernels(p, np.zeros((len(x1), len(x1))), Xi, Xi)
-            L = np.linalg.cholesky(0.5 * (W + W.T))
+            W.fill(0.0)
+            _add_kernels(p, W, Xi, Xi)
+            L = scipy.linalg.cho_factor(sym_scaled_lower(W, ones), lower=True, overwrite_a=True,
+                                        check_finite=False)[0]  # the lower triangle is the factor
             Aw = scipy.linalg.solve_triangular(L, p.A.T, lower=True, check_finite=False).T  # A L^-T
-            y = scipy.linalg.lstsq(Aw, p.b - p.A @ x1, check_finite=False, lapack_driver="gelsd")[0]
+            y = least_norm(Aw, p.b - p.A @ x1)
             d = scipy.linalg.solve_triangular(L, y, lower=True, trans="T", check_finite=False)
             t_max = _step_to_boundary([(Xk, Xk1 - Xk) for Xk, Xk1 in zip(X, p.slacks(x1 + d))])
         except np.linalg.LinAlgError:

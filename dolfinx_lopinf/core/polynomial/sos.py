@@ -91,9 +91,12 @@ def _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, p
     Rn = R * norms[None, :]  # acts on theta (balanced units)
     A_s = np.hstack([Rn[:, :p_pot] @ Mv, Rn[:, p_pot:p_pot + nC]])
     A_b = Rn[:, p_pot + nC:]
-    if A_b.shape[1]:  # B minimised out: project onto the complement of A_b's columns
-        Qb = scipy.linalg.qr(A_b, mode="economic", check_finite=False)[0]
-        A_p, z_p = A_s - Qb @ (Qb.T @ A_s), z - Qb @ (Qb.T @ z)
+    if A_b.shape[1]:  # B minimised out: the rows of the complement of A_b's columns
+        # ||P (A_s x - z)|| = ||Q2^T (A_s x - z)|| with P = Q2 Q2^T: m - m_B rows of full rank
+        # where the projection P A_s kept m rows of rank m - m_B (the polish's least-norm
+        # steps need full row rank)
+        Q2 = scipy.linalg.qr(A_b, mode="full", check_finite=False)[0][:, A_b.shape[1]:]
+        A_p, z_p = Q2.T @ A_s, Q2.T @ z
     else:
         A_p, z_p = A_s, z
     n = ng + nC
@@ -167,7 +170,7 @@ def _monomial_scales(A, n) -> np.ndarray:
 def _start(problem, Mv, A_p, z_p, r, n_g, ng, nC):
     """A strictly feasible start: the least-squares fit's potential as its smallest Gram
     matrix, then G, C shifted up until every block exceeds its floor by a margin."""
-    y = scipy.linalg.lstsq(A_p, z_p, check_finite=False)[0]
+    y = psd_qp.least_norm(A_p, z_p)  # full row rank (B's columns removed): LAPACK gels
     g = y[:ng]
     x = np.concatenate([g, y[ng:]])
     for _ in range(60):
