@@ -344,7 +344,7 @@ def figure(path: Path, records: list[dict], exponents: dict) -> None:
         s0 = min(r["seconds_per_step"] for r in done if r["n_dofs"] == n[0])
         axes[0].loglog(n, s0 * n / n[0], "k:", lw=1, label="slope 1")
     axes[0].set(xlabel="dofs", ylabel="seconds per Newmark step",
-                title="time per step (o wall, fastest repeat, fitted line; . other repeats; x CPU)")
+                title="time per step (o wall: fastest run, line fitted; . other runs; x CPU)")
     axes[1].set(xlabel="dofs", ylabel="seconds", title="set-up (mesh to factorisation)")
     axes[2].set(xlabel="dofs", ylabel="GB", title="peak resident memory per rank")
     for ax in axes:
