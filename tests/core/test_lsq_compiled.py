@@ -292,3 +292,21 @@ def test_psd_qp_compiled_kernel_equals_the_numpy_kernel(n):
     ref = kernel([(1.0, P, Q)], n)
     assert H.shape == ref.shape == (n * (n + 1) // 2,) * 2
     assert np.abs(H - ref).max() <= 1e-14 * np.abs(ref).max()
+
+
+@needs_numba
+@pytest.mark.parametrize("n", [1, 5, 40])
+def test_psd_qp_compiled_symmetrisation_is_the_numpy_passes_bit_for_bit(n):
+    """The sos interior point's one-pass sym + equilibration of the Schur matrix's lower
+    triangle gives the bits of the numpy passes S += S^T, S *= d/2 (rows), S *= d (columns)."""
+    from dolfinx_lopinf.core.lsq import psd_qp
+
+    rng = np.random.default_rng(n)
+    S, d = rng.standard_normal((n, n)) * 10.0 ** rng.uniform(-8, 8, (n, n)), rng.uniform(0.1, 10, n)
+    ref = S.copy()
+    ref += ref.T
+    ref *= 0.5 * d[:, None]
+    ref *= d[None, :]
+    ours = psd_qp.sym_scaled_lower(S.copy(), d)
+    low = np.tril_indices(n)
+    assert np.array_equal(ours[low], ref[low])

@@ -231,3 +231,23 @@ def test_the_interior_point_hands_over_to_the_polish_where_it_is_flat_at_the_tol
     assert early["certified"] and late["certified"]
     assert early["iterations"] + 2 <= late["iterations"]
     assert early["relative_residual"] <= 1.01 * late["relative_residual"]
+
+
+def test_least_norm_is_the_minimum_norm_least_squares_solution():
+    """LAPACK gels (LQ) where A has full row rank, gelsd (SVD) where it is (nearly) singular -
+    gels itself answered an exactly zero row with 1e11-sized garbage, no error: both the
+    minimum-norm solution, as numpy gives it."""
+    from dolfinx_lopinf.core.lsq import psd_qp
+
+    rng = np.random.default_rng(3)
+    A, y = rng.standard_normal((30, 80)), rng.standard_normal(30)
+    d = psd_qp.least_norm(A, y)
+    assert np.allclose(d, np.linalg.lstsq(A, y, rcond=None)[0], rtol=1e-10, atol=1e-12)
+    A[7] = 0.0  # an exactly zero row: gelsd answers
+    d = psd_qp.least_norm(A, y)
+    assert np.allclose(d, np.linalg.lstsq(A, y, rcond=None)[0], rtol=1e-10, atol=1e-12)
+    A[7] = 1e-15 * rng.standard_normal(80)  # nearly: gels's pivot 1e-15, no error from gels
+    d = psd_qp.least_norm(A, y)
+    assert np.allclose(d, np.linalg.lstsq(A, y, rcond=None)[0], rtol=1e-10, atol=1e-12)
+    tall, b = rng.standard_normal((80, 30)), rng.standard_normal(80)  # the least-squares solution
+    assert np.allclose(psd_qp.least_norm(tall, b), np.linalg.lstsq(tall, b, rcond=None)[0], rtol=1e-10)

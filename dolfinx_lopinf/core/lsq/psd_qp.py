@@ -414,20 +414,32 @@ POLISH_STEPS = 8
 POLISH_PROGRESS = 0.9
 
 
+#: least_norm takes LAPACK gels's answer where the triangular factor's diagonal spans at most
+#: 1 / GELS_RCOND; beyond, gelsd's (the two agree to ~cond u there, so the choice moves no
+#: answer by more than the conditioning does)
+GELS_RCOND = 1e-10
+
+
 def least_norm(A, y):
     """The least-norm least-squares solution of A d = y: LAPACK gels (an LQ or QR factorisation,
-    BLAS-3; a third of the SVD-based gelsd's time on the SVK polish's 522 x 1,026 systems),
-    gelsd where gels finds A singular or returns a non-finite answer."""
+    BLAS-3; a third of the SVD-based gelsd's time on the SVK polish's 522 x 1,026 systems)
+    where its triangular factor is far from singular (:data:`GELS_RCOND`), else gelsd - gels
+    has no rank test and answers a rank-deficient A with rounding-sized pivots (finite,
+    1e11 where the answer is 1)."""
     m, n = A.shape
     gels, gels_lwork = scipy.linalg.lapack.get_lapack_funcs(("gels", "gels_lwork"), (A,))
     work, info = gels_lwork(m, n, 1)
     if info == 0:
         rhs = np.zeros((max(m, n), 1))
         rhs[:m, 0] = y
-        _, d, info = gels(A, rhs, lwork=int(work))
-        if info == 0 and np.all(np.isfinite(d)):
+        lq, d, info = gels(A, rhs, lwork=int(work))
+        pivots = np.abs(np.diag(lq[:min(m, n), :min(m, n)]))
+        if info == 0 and pivots.min() > GELS_RCOND * pivots.max() and np.all(np.isfinite(d)):
             return d[:n, 0]
-    return scipy.linalg.lstsq(A, y, check_finite=False, lapack_driver="gelsd")[0]
+    # singular values below max(m, n) u of the largest are rounding (numpy's lstsq default;
+    # scipy's, u alone, kept a zero row's ~1e-16 and answered 1e11)
+    return scipy.linalg.lstsq(A, y, cond=max(m, n) * np.finfo(float).eps, check_finite=False,
+                              lapack_driver="gelsd")[0]
 
 
 def polish(p: QuadraticPSD, x, Lam, gap):
