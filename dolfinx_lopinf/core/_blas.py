@@ -50,6 +50,14 @@ def serial_blas(fn):
     return wrapper
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity; the machine's count off Linux)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 def share_cores_among_ranks(comm) -> int | None:
     """Collective on ``comm``. Cap this process's BLAS threads at its share of the node's cores,
     max(1, cores // ranks on the node), for the rest of the process - where ``comm`` has more
@@ -66,11 +74,7 @@ def share_cores_among_ranks(comm) -> int | None:
     if any(os.environ.get(v, "").strip() for v in THREAD_VARIABLES):
         _SHARED["limit"], _SHARED["threads"] = None, None
         return None
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    threads = max(1, cores // ranks_here)
+    threads = max(1, usable_cores() // ranks_here)
     try:
         from threadpoolctl import threadpool_limits
 

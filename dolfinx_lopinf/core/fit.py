@@ -49,7 +49,7 @@ from ._checks import as_real_array
 from ..errors import (FileFormatError, InputError, SchemeMismatchWarning, warn)
 from .identify import (CLEAR_GAIN, REFINEMENT_GAIN, RESIDUAL_FLOOR, SHORTLIST, Residual, identify,
                        standard_members)
-from ._blas import serial_blas
+from ._blas import serial_blas, usable_cores
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
 from .rom import LagrangianROM, Trajectory, load_rom, save_rom
@@ -341,10 +341,7 @@ def _map(func, items, r, cost=None):
 def fit_threads() -> int:
     """Threads for the candidates' fits: the environment's DOLFINX_LOPINF_FIT_THREADS, else
     the cores this process may use, shared among the MPI ranks if mpi4py is running."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
+    cores = usable_cores()
     mpi = sys.modules.get("mpi4py.MPI")
     if mpi is not None and mpi.Is_initialized() and not mpi.Is_finalized():
         cores = max(1, cores // mpi.COMM_WORLD.size)
