@@ -212,25 +212,38 @@ def test_an_iterate_lost_to_rounding_ends_the_interior_point_and_auto_takes_clar
 
 
 def test_the_interior_point_hands_over_to_the_polish_where_it_is_flat_at_the_tolerance(monkeypatch):
-    """The SVK demo's probes at r = 6 (near-exact data): the gap estimate reaches gap_tol and
-    stays there (the complementarity's rounding floor) while the certified gap does not halve
-    either. Two such iterations end the interior point (flat at the tolerance) and the polish
-    certifies - the certificate and the misfit of the run that went on until its steps were
-    short (FLAT_NEAR = 0), in fewer iterations."""
+    """The SVK demo's probes at r = 6 (near-exact data), as recorded and perturbed at 1e-15 (five
+    copies): where the gap estimate reaches the complementarity's rounding floor near gap_tol
+    and stays there, two iterations that halve neither it nor the certified gap end the
+    interior point (flat at the tolerance) and the polish certifies - with the misfit of the
+    run without the rule (FLAT_NEAR = 0), in at least two fewer iterations. Where the
+    estimate falls below gap_tol instead (some roundings: measured, 2 of the 6 copies here),
+    the interior point certifies by itself, with or without the rule. The rule must have
+    fired on some copy (measured: 4 of 6)."""
     from pathlib import Path
 
     from dolfinx_lopinf.core.lsq import psd_qp
     from dolfinx_lopinf.core.polynomial.fit import MidpointData
 
     z = np.load(Path(__file__).with_name("data") / "svk_probes_r6.npz")
-    data = MidpointData(z["minus"], z["plus"], z["D1"], z["D2"], z["Ubar"], float(z["dt"]))
-    early = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
-    monkeypatch.setattr(psd_qp, "FLAT_NEAR", 0.0)
-    late = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
-    assert "flat at the tolerance" in early["stopped"] and "flat" not in late["stopped"]
-    assert early["certified"] and late["certified"]
-    assert early["iterations"] + 2 <= late["iterations"]
-    assert early["relative_residual"] <= 1.01 * late["relative_residual"]
+    fired = 0
+    for seed in range(6):
+        rng = np.random.default_rng(seed)
+        minus, plus, D1, D2 = (z[k] if seed == 0 else z[k] * (1.0 + 1e-15 * rng.standard_normal(z[k].shape))
+                               for k in ("minus", "plus", "D1", "D2"))
+        data = MidpointData(minus, plus, D1, D2, z["Ubar"], float(z["dt"]))
+        monkeypatch.setattr(psd_qp, "FLAT_NEAR", 10.0)
+        early = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
+        monkeypatch.setattr(psd_qp, "FLAT_NEAR", 0.0)
+        late = pl.fit_polynomial(data, constraint="sos", solver="ipm").certificate
+        assert early["certified"] and late["certified"] and "flat" not in late["stopped"]
+        if "flat at the tolerance" in early["stopped"]:
+            fired += 1
+            assert early["iterations"] + 2 <= late["iterations"], (seed, early["iterations"], late["iterations"])
+            assert early["relative_residual"] <= 1.01 * late["relative_residual"]
+        else:
+            assert early["stopped"] == "certified" and early["iterations"] == late["iterations"], seed
+    assert fired >= 1
 
 
 def test_least_norm_is_the_minimum_norm_least_squares_solution():

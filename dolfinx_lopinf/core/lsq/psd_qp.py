@@ -371,7 +371,7 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         trace.append((a, sigma, est))
         short = len(trace) >= 3 and max(t[0] for t in trace[-3:]) < 0.05
         near = est <= FLAT_NEAR * gap_tol
-        gaps.append(p.gap(x, Lam) if short or near else np.nan)
+        gaps.append(p.gap(x, Lam) if est <= gap_tol or short or near else np.nan)
         # flat at the tolerance: two iterations that halved neither an estimate already within
         # FLAT_NEAR gap_tol nor the certified gap (the complementarity's rounding floor on
         # exact data; the short steps that end it there came three iterations later, each a
