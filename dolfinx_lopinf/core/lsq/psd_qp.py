@@ -47,6 +47,8 @@ SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
 #: the interior point stops where two iterations did not halve a gap estimate below
 #: FLAT_NEAR gap_tol (and the gap is not met): the polish goes on from there
 FLAT_NEAR = 10.0
+#: a step length below SLOW_STEP is a sign of a jam: the certified gap is computed there
+SLOW_STEP = 0.5
 
 
 def _kernel_loop(P, Q, iu0, iu1, H):
@@ -224,29 +226,63 @@ class QuadraticPSD:
 
     def gap(self, x, Lam) -> float:
         """The certified relative gap of x with the multipliers Lambda (clipped >= 0). With a
-        null space of H (along which f is flat) the Lagrangian is bounded only if
-        N^T sum_k P_k^T D vech Lambda_k = 0: block 0's multiplier is projected onto that
-        subspace and, if that costs positive definiteness, raised by t ``moment`` (PD and in
-        the subspace) - any such multipliers prove a bound."""
+        null space N of H (along which f is flat) the Lagrangian is bounded only if
+        N^T sum_k P_k^T D vech Lambda_k = 0 (= c): any such multipliers >= 0 prove a bound.
+        Block 0's multiplier is corrected so: first by the plain projection (Lambda_0 - L_0,
+        L_0 the part along N); where that costs positive definiteness - Lambda_0's eigenvalues
+        fall far below |L_0| near the optimum - by :meth:`_scaled_correction` (Lambda_0 +
+        Lambda_0 Z Lambda_0) and by raising the projection t ``moment`` (PD, orthogonal to N);
+        the smaller of their gaps."""
         Lam = [sym(Lk) for Lk in Lam]
-        if self.null is not None:
-            n0 = self.sizes[0]
-            w0 = _vech(n0)[3]
-            u = self.block_T(0, w0 * vech(Lam[0]))
-            u_rest = sum((self.block_T(k, _vech(nk)[3] * vech(Lk)) for k, (Lk, nk) in
-                          enumerate(zip(Lam, self.sizes)) if k), np.zeros_like(u))
-            c = self.null.T @ (u + u_rest)  # the part to remove, in block 0's unknowns
-            du = self.null @ c
-            sel = self.selections[0]
-            if sel is not None:  # P_0 = scale x selection: invert it directly
-                idx, scale = sel
-                L0 = unvech(du[idx] / (scale * w0), n0)
-            else:
-                L0 = unvech(np.linalg.lstsq(self.P[0].T * w0[None, :], du, rcond=None)[0], n0)
-            Lam[0] = Lam[0] - L0
-            low = scipy.linalg.eigvalsh(Lam[0], self.moment, subset_by_index=[0, 0])[0]
-            if low < 0:
-                Lam[0] = Lam[0] - low * (1.0 + 1e-12) * self.moment
+        if self.null is None:
+            return self._gap_at(x, Lam)
+        n0 = self.sizes[0]
+        c = self.null.T @ self.lin(Lam)  # the part to remove
+        du = self.null @ c
+        sel = self.selections[0]
+        if sel is not None:  # P_0 = scale x selection: invert it directly
+            idx, scale = sel
+            L0 = unvech(du[idx] / (scale * _vech(n0)[3]), n0)
+        else:
+            L0 = unvech(np.linalg.lstsq(self.P[0].T * _vech(n0)[3][None, :], du, rcond=None)[0], n0)
+        projected = Lam[0] - L0
+        low = scipy.linalg.eigvalsh(projected, self.moment, subset_by_index=[0, 0])[0]
+        if low >= 0:
+            return self._gap_at(x, [projected] + Lam[1:])
+        raised = projected - low * (1.0 + 1e-12) * self.moment
+        gap = self._gap_at(x, [raised] + Lam[1:])
+        scaled = self._scaled_correction(Lam, c)
+        if scaled is not None:
+            gap = min(gap, self._gap_at(x, [scaled] + Lam[1:]))
+        return gap
+
+    def _scaled_correction(self, Lam, c):
+        """Lambda_0 + E with E = Lambda_0 Z Lambda_0, Z = unvech(P_0 N y) a Gram matrix of the
+        zero polynomial, y solving (N^T P_0^T K(Lambda_0, Lambda_0) P_0 N) y = -c: the
+        correction that removes the null part where Lambda_0 is large and leaves its small
+        eigenvalues (those complementary to the large ones of X_0) nearly alone, so that it
+        stays >= 0 and moves <Lambda_0, X_0> little. The moment raise instead adds t M with t
+        ~ |L_0| / lambda_min(Lambda_0) (the SVK trajectory probes at r = 8, a jammed iterate:
+        relative gap 0.34 -> 2.5e-7, the complementarity's). None where it does not apply."""
+        sel = self.selections[0]
+        if sel is None:
+            return None
+        idx, scale = sel
+        n0 = self.sizes[0]
+        N0 = self.null[idx]
+        T = (scale * scale) * (N0.T @ (_kernel(Lam[0], Lam[0], n0) @ N0))
+        try:
+            y = scipy.linalg.solve(T, -c, assume_a="pos", check_finite=False)
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+        out = sym(Lam[0] + Lam[0] @ unvech(scale * (N0 @ y), n0) @ Lam[0])
+        left = self.null.T @ self.lin([out] + Lam[1:])
+        if not np.all(np.isfinite(out)) or np.linalg.norm(left) > 1e-6 * np.linalg.norm(c):
+            return None  # the solve lost the constraint to rounding: not a valid multiplier
+        return out
+
+    def _gap_at(self, x, Lam) -> float:
+        """(1/4 v^T H^-1 v + sum_k <Lambda_k, X_k(x)>) / reference, Lambda clipped >= 0."""
         Lam = [from_eig(np.maximum(w, 0.0), Q) for w, Q in (np.linalg.eigh(Lk) for Lk in Lam)]
         v = self.gradient(x) - self.lin(Lam)
         comp = sum(float(np.sum(Lk * Xk)) for Lk, Xk in zip(Lam, self.slacks(x)))
@@ -371,7 +407,10 @@ def solve(problem: QuadraticPSD, x0, gap_tol=1e-8, max_iter=60):
         trace.append((a, sigma, est))
         short = len(trace) >= 3 and max(t[0] for t in trace[-3:]) < 0.05
         near = est <= FLAT_NEAR * gap_tol
-        gaps.append(p.gap(x, Lam) if est <= gap_tol or short or near else np.nan)
+        # the gap also after a step below SLOW_STEP: where the iteration jams, its iterates'
+        # dual residual (hence the gap) can grow 50x over a few steps that move nothing else
+        # (SVK trajectory probes, r = 8: 4.2e-6 -> 2.0e-4), so the best is kept from the first
+        gaps.append(p.gap(x, Lam) if est <= gap_tol or short or near or a < SLOW_STEP else np.nan)
         # flat at the tolerance: two iterations that halved neither an estimate already within
         # FLAT_NEAR gap_tol nor the certified gap (the complementarity's rounding floor on
         # exact data; the short steps that end it there came three iterations later, each a
