@@ -144,6 +144,8 @@ class QuadraticPSD:
     b: np.ndarray | None = None       # f and its gradient from the residual, no cancellation
     f_const: float = 0.0              # a constant the objective stands for beside f (the gap's
                                       # reference is f + f_const: a compressed least squares)
+    flat: object = None               # (n, k) scipy.sparse: any basis of A's null space (the
+                                      # polish's steps in it; a sparse one makes them cheap)
     sizes: tuple = field(init=False)
 
     def __post_init__(self):
@@ -502,17 +504,21 @@ def polish(p: QuadraticPSD, x, Lam, gap):
     f1, steps = f0, []
     n = len(x1)
     W, ones = np.empty((n, n)), np.ones(n)
+    nullspace = _NullSpaceSteps.of(p)
     for _ in range(POLISH_STEPS):
         X = p.slacks(x1)
         try:
             Xi = [np.linalg.inv(Xk) for Xk in X]
             W.fill(0.0)
             _add_kernels(p, W, Xi, Xi)
-            L = scipy.linalg.cho_factor(sym_scaled_lower(W, ones), lower=True, overwrite_a=True,
-                                        check_finite=False)[0]  # the lower triangle is the factor
-            Aw = scipy.linalg.solve_triangular(L, p.A.T, lower=True, check_finite=False).T  # A L^-T
-            y = least_norm(Aw, p.b - p.A @ x1)
-            d = scipy.linalg.solve_triangular(L, y, lower=True, trans="T", check_finite=False)
+            if nullspace is not None:
+                d = nullspace.step(W, p.b - p.A @ x1)
+            else:
+                L = scipy.linalg.cho_factor(sym_scaled_lower(W, ones), lower=True, overwrite_a=True,
+                                            check_finite=False)[0]  # the lower triangle is the factor
+                Aw = scipy.linalg.solve_triangular(L, p.A.T, lower=True, check_finite=False).T  # A L^-T
+                y = least_norm(Aw, p.b - p.A @ x1)
+                d = scipy.linalg.solve_triangular(L, y, lower=True, trans="T", check_finite=False)
             t_max = _step_to_boundary([(Xk, Xk1 - Xk) for Xk, Xk1 in zip(X, p.slacks(x1 + d))])
         except np.linalg.LinAlgError:
             break
@@ -535,3 +541,41 @@ def polish(p: QuadraticPSD, x, Lam, gap):
     if not gap1 <= gap:  # nothing gained: the interior point's answer
         return x, gap, {**record, "misfit_after": f0, "kept": "interior point"}
     return x1, gap1, {**record, "bound": "zero" if gap_zero <= gap_lam else "multipliers"}
+
+
+class _NullSpaceSteps:
+    """The polish's step argmin ||d||_W s.t. A d = y through A's null space: d = d_0 + Z w with
+    d_0 = A^+ y (one QR of A^T per polish) and (Z^T W Z) w = -Z^T W d_0, Z the problem's
+    sparse basis ``flat`` (differences of two Gram entries of one monomial in the sos fit):
+    a Cholesky factorisation of k x k per step, where the range-space step
+    (A L^-T, W = L L^T) needs one of n x n, a triangular solve with m right-hand sides and an
+    LQ factorisation (the SVK fit at r = 8: k = 504, n = 1,026, m = 522). A d = y holds
+    through d_0 whatever the conditioning of Z^T W Z. Used where A has full row rank and
+    m + k = n (Z spans the whole null space); else None."""
+
+    def __init__(self, p: QuadraticPSD, Q, R):
+        self.Z, self.Q, self.R = p.flat, Q, R
+
+    @classmethod
+    def of(cls, p: QuadraticPSD):
+        if p.flat is None or p.A is None:
+            return None
+        m, n = p.A.shape
+        if m + p.flat.shape[1] != n:
+            return None
+        Q, R = scipy.linalg.qr(p.A.T, mode="economic", check_finite=False)  # A = R^T Q^T
+        diag = np.abs(np.diag(R))
+        if not diag.min() > GELS_RCOND * diag.max():  # rank-deficient rows: the range-space step
+            return None
+        return cls(p, Q, R)
+
+    def step(self, W, y):
+        d0 = self.Q @ scipy.linalg.solve_triangular(self.R, y, trans="T", check_finite=False)
+        WZ = (self.Z.T @ W).T  # W symmetric: W Z with the sparse Z on the left
+        T = np.asarray(self.Z.T @ WZ)
+        dd = 1.0 / np.sqrt(np.diag(T))
+        T *= dd[:, None]
+        T *= dd[None, :]
+        fac = scipy.linalg.cho_factor(T, lower=True, overwrite_a=True, check_finite=False)
+        w = dd * scipy.linalg.cho_solve(fac, -dd * (WZ.T @ d0), check_finite=False)
+        return d0 + self.Z @ w

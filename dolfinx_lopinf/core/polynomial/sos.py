@@ -35,6 +35,7 @@ from math import comb
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 
 from .._blas import one_blas_thread
 from ..lsq import psd_qp
@@ -50,6 +51,27 @@ def gram_map_vech(r: int) -> np.ndarray:
     out = Mall[:, i * n + j] + np.where(i != j, 1.0, 0.0) * Mall[:, j * n + i]
     out.setflags(write=False)
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def gram_null_sparse(r: int):
+    """A sparse basis of the null space of :func:`gram_map_vech` (CSC, two entries a column):
+    each Gram entry reaches one monomial (with weight 1 or 2), so for each monomial reached by
+    entries e_0 .. e_k the differences e_0 / w_0 - e_j / w_j, j = 1 .. k."""
+    Mv = gram_map_vech(r)
+    rows, cols = np.nonzero(Mv)
+    if np.bincount(cols, minlength=Mv.shape[1]).max() != 1:
+        raise AssertionError("a Gram entry reaches more than one monomial")
+    ii, jj, vv = [], [], []
+    k = 0
+    for mono in range(Mv.shape[0]):
+        entries = cols[rows == mono]
+        for e in entries[1:]:
+            ii += [entries[0], e]
+            jj += [k, k]
+            vv += [1.0 / Mv[mono, entries[0]], -1.0 / Mv[mono, e]]
+            k += 1
+    return scipy.sparse.csc_matrix((vv, (ii, jj)), shape=(Mv.shape[1], k))
 
 
 @functools.lru_cache(maxsize=8)
@@ -130,8 +152,11 @@ def _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, p
         F.append(eps * np.diag((e * sig) ** 2))
     N = np.zeros((n, gram_null(r).shape[1]))
     N[:ng] = scipy.linalg.qr(gram_null(r) / s[:ng, None], mode="economic", check_finite=False)[0]
+    # the null space again, sparse, in the scaled unknowns (x = s x': a direction n is n / s)
+    flat = scipy.sparse.vstack([scipy.sparse.diags(1.0 / s[:ng]) @ gram_null_sparse(r),
+                                scipy.sparse.csc_matrix((nC, gram_null_sparse(r).shape[1]))]).tocsc()
     problem = psd_qp.QuadraticPSD(H, h, float(z_p @ z_p), P, F, f_scale=float(z @ z), null=N,
-                                  moment=moment, A=A_x, b=z_p, f_const=f_const)
+                                  moment=moment, A=A_x, b=z_p, f_const=f_const, flat=flat)
     x0 = _start(problem, Mv, A_x, z_p, r, n_g, ng, nC)
     x, cert = psd_qp.solve(problem, x0, gap_tol=gap_tol)
     f = problem.objective(x)  # in the scaled unknowns the problem is posed in
