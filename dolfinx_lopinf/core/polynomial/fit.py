@@ -398,9 +398,10 @@ CLARABEL_OPTIONS = {"tol_gap_abs": 1e-13, "tol_gap_rel": 1e-13, "tol_feas": 1e-1
 #: solver="auto": an sos fit of ours left with a duality gap above this (or none) is tried
 #: again by Clarabel. Below it ours is within that fraction of the optimum, and Clarabel was
 #: not better where measured: on the SVK demo's neo-Hookean probes (not a polynomial; ours
-#: stops at gaps 8e-8 .. 1.1e-6) its "optimal_inaccurate" answers, certified in its own terms,
-#: had 6-12 % more excess residual than ours (2-4 % more relative residual), and took
-#: 0.7 / 3.2 / 39 s at r = 4 / 6 / 8 against our 0.04 / 0.2 / 1.4 s.
+#: stopped at gaps 8e-8 .. 1.1e-6 then, 7.6e-8 at r = 8 now) its "optimal_inaccurate" answers,
+#: certified in its own terms, had 6-12 % more excess residual than ours (2-4 % more relative
+#: residual), and took 0.7 / 3.2 / 39 s at r = 4 / 6 / 8 against our 0.04 / 0.2 / 1.4 s; on
+#: the SVK trajectory fit at r = 8 (ours uncertified at ~3e-6) it took 101 s.
 FALLBACK_GAP = 1e-4
 
 

@@ -9,9 +9,11 @@ coefficients are M_v g (``gram_maps`` in vech coordinates), and the misfit is
 polynomial is not unique (q_i^2 q_j^2 = (q_i q_j)^2 = (q_i^2)(q_j^2)): f is flat along the
 null space N of M_v (:func:`gram_null`); the interior point's Schur matrix is positive
 definite all the same (the Gram block's barrier), and the certificate keeps the bound finite
-by making the Gram multiplier orthogonal to N - projecting it, then adding a multiple of the
-data's moment matrix (:func:`moment_matrix`: positive definite, orthogonal to N) if the
-projection cost positive definiteness.
+by making the Gram multiplier orthogonal to N - projecting it, and where that costs positive
+definiteness, the better of correcting it as Lambda + Lambda Z Lambda (Z in N) and adding a
+multiple of the data's moment matrix (:func:`moment_matrix`: positive definite, orthogonal
+to N; :meth:`~dolfinx_lopinf.core.lsq.psd_qp.QuadraticPSD.gap`). The polish steps through
+N's sparse basis (:func:`gram_null_sparse`).
 
 Constraints: G >= eps_g I, K = 2 G_11 >= eps diag(sig^2), C >= eps diag(sig^2): three
 blocks of n_g, r and r. The certificate is the interior point's (closed-form dual bound).
