@@ -292,9 +292,11 @@ class Problem:
 
         def gap(candidates):
             out = np.inf
-            for lam_k in candidates:
+            for lam_k in candidates:  # (a generator: the ones after a gap <= enough not formed)
                 v = grad - ix.Dw * ix.vech(lam_k)
                 out = min(out, 0.25 * float(v @ self.spd.solve(v)) + float(np.sum(lam_k * slack)))
+                if max(out, 0.0) / fx <= enough:
+                    break
             return max(out, 0.0) / fx
 
         rel = np.inf if lam is None else gap([lam])
@@ -308,7 +310,7 @@ class Problem:
             rel = min(rel, gap(self._face_multipliers(grad, slack, ranks)))
         return rel, float(lam_w.min()) / self.gradient_scale
 
-    def _face_multipliers(self, grad, slack, ranks) -> list:
+    def _face_multipliers(self, grad, slack, ranks):
         """Multipliers supported on the face: Lambda_k = N_k M_k N_k^T, N_k the r - ranks[k]
         eigenvectors of S_k - eps I with the smallest eigenvalues, or one more (a direction
         the rank count may have missed: both it and its multiplier small), every combination
@@ -318,7 +320,7 @@ class Problem:
         (weakly active constraints) this bound is tighter than the PSD part of the gradient,
         which pays <grad, S - eps I> on the inactive directions, where both are small but
         their product is not (the interior point stalls there at m mu / f ~ 1e-8)."""
-        ix, r, nb = self.index, self.r, self.n_blocks
+        ix, r, nb = self.index, self.r, self.n_blocks  # (a generator of the candidates)
         widest = [min(r, max(r - int(k), 0) + 1) for k in ranks]
         cols, lin, owner, pairs, eigvecs = [], [], [], [], []
         for k in range(nb):
@@ -336,7 +338,6 @@ class Problem:
         owner, top = np.concatenate(owner), np.concatenate(pairs)
         HiA = self.spd.solve(A)
         G, bA = A.T @ HiA, HiA.T @ grad                                # A^T H^-1 A, A^T H^-1 g
-        out = []
         for sizes in itertools.product(*[sorted({max(w - 1, 0), w}) for w in widest]):
             keep = top < np.asarray(sizes)[owner]                    # pairs (a, b) inside the face
             if not keep.any():
@@ -354,8 +355,7 @@ class Problem:
                 w, V = np.linalg.eigh(unvech(c[(owner == k) & keep], m))
                 N = eigvecs[k][:, :m]
                 lam[k] = from_eig(np.maximum(w, 0.0), N @ V)
-            out.append(lam)
-        return out
+            yield lam
 
     def _blocks_only(self):
         if self.n_free:
