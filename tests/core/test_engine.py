@@ -327,3 +327,37 @@ def test_interior_point_on_the_active_block_only_is_certified(seed, eliminated):
     assert abs(f - f_full) <= 2e-8 * f_full
     assert np.linalg.eigvalsh(theta[:, :r]).min() >= 1e-8
     assert np.linalg.eigvalsh(theta[:, r:]).min() >= 1e-8 - 1e-14 * np.abs(theta[:, r:]).max()
+
+
+def test_a_candidate_fit_keeps_a_nearly_certified_interior_point_without_its_crossover(monkeypatch):
+    """An interior point stopped uncertified (here: asked for a gap of 1e-14, beyond what it
+    resolves) crosses over to its face; with ``crossover_above`` (lo.fit's candidates:
+    PSDBlocks(fallback=False), gap at most blocks.CANDIDATE_GAP) a gap at most that keeps the
+    interior point's own point, and an unknown gap (inf) still crosses over."""
+    from dolfinx_lopinf.core.inference import gram_data
+    from dolfinx_lopinf.core.lsq import blocks, ipm
+    from dolfinx_lopinf.core.lsq.face import FaceNewton
+    from dolfinx_lopinf.core.lsq.problem import symmetric_start
+    from dolfinx_lopinf.core.synthetic import forced_data
+
+    g = gram_data(*forced_data(6, 3000, seed=0))
+    free = np.zeros(g.L.shape[0], dtype=bool)
+    free[-1] = True
+    L_S, Z_S, _ = lsq.eliminate_free(g.L, g.Z, free)
+    problem = lsq.Problem(L_S, Z_S, 2, 1e-8)
+    x, feasible = symmetric_start(problem)
+    crossed, real = [], ipm._crossover
+    monkeypatch.setattr(ipm, "_crossover", lambda *a: crossed.append(a[2].duality_gap) or real(*a))
+    runs = {}
+    for above in (0.0, blocks.CANDIDATE_GAP):
+        crossed.clear()
+        x_ip, cert, _ = ipm.interior_point(problem, x, feasible, FaceNewton(problem, 1e-14), gap_tol=1e-14,
+                                           eliminate=False, crossover_above=above)
+        runs[above] = (x_ip, cert, list(crossed))
+    (x0, c0, crossed0), (x1, c1, crossed1) = runs[0.0], runs[blocks.CANDIDATE_GAP]
+    assert not c1.converged and 1e-14 < c1.duality_gap <= blocks.CANDIDATE_GAP and crossed1 == []
+    assert len(crossed0) == 1  # the same stop, crossed over
+    crossed.clear()
+    ipm.interior_point(problem, x, feasible, FaceNewton(problem, 1e-8), max_iter=3, eliminate=False,
+                       crossover_above=blocks.CANDIDATE_GAP)  # stopped before any gap was computed
+    assert crossed == [np.inf]

@@ -482,13 +482,14 @@ class _ActiveBlocks:
 
 
 def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_iter=40,
-                   eliminate=True, backend="auto"):
+                   eliminate=True, backend="auto", crossover_above=0.0):
     """The interior point from the symmetric minimiser ``x`` (``feasible``: its blocks that
     are >= eps I): first on the active blocks only (``eliminate``, if some block is
     feasible), else on all; if it stops uncertified, Newton on the face it shows
     (``newton``: a :class:`FaceNewton`). Needs H > 0. ``backend``: the iteration in numpy or
     compiled (:class:`PrimalDualIPM`; ``"auto"``: compiled when numba is there).
-    Returns ``(x, Certificate, details)``."""
+    ``crossover_above``: an uncertified run with a gap at most this keeps its own point (no
+    crossover). Returns ``(x, Certificate, details)``."""
     H, h = problem.normal_equations
     details, result = {}, None
     if eliminate and feasible.any():
@@ -502,7 +503,7 @@ def interior_point(problem: Problem, x, feasible, newton, *, gap_tol=1e-8, max_i
         result = ipm.run(x, certify=functools.partial(problem.dual_gap, enough=gap_tol),
                          gap_tol=gap_tol, max_iter=max_iter)
     x_ip, cert = result
-    if not cert.converged:
+    if not cert.converged and not cert.duality_gap <= crossover_above:
         x_ip = _crossover(problem, x_ip, cert, newton, gap_tol)
     details["ipm"] = {k: v for k, v in cert.as_dict().items() if k not in ("solver", "face_ranks")}
     return x_ip, cert, details
