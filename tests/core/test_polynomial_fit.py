@@ -301,6 +301,10 @@ def test_the_polish_step_through_the_null_space_is_the_range_space_step():
     assert np.allclose(A @ d, y, atol=1e-12 * np.abs(y).max())
     assert psd_qp._NullSpaceSteps.of(psd_qp.QuadraticPSD(A.T @ A, np.zeros(n), 0.0, [], [], A=A, b=y,
                                                           flat=Z[:, :-1])) is None  # not the whole null space
+    W_Z = Z.toarray()
+    W_Z[0, 0] += 1.0  # a column outside A's null space: not used
+    assert psd_qp._NullSpaceSteps.of(psd_qp.QuadraticPSD(A.T @ A, np.zeros(n), 0.0, [], [], A=A, b=y,
+                                                          flat=scipy.sparse.csc_matrix(W_Z))) is None
 
     records = {}
     for name, of in (("null", psd_qp._NullSpaceSteps.of), ("range", lambda p: None)):

@@ -563,6 +563,10 @@ class _NullSpaceSteps:
         m, n = p.A.shape
         if m + p.flat.shape[1] != n:
             return None
+        AZ = np.asarray((p.flat.T @ p.A.T).T)  # A Z (sparse Z): ~0 where Z is in A's null space
+        scale = np.abs(p.A).sum(axis=1)[:, None] * np.asarray(abs(p.flat).max(axis=0).todense())
+        if not np.all(np.abs(AZ) <= 1e-10 * np.maximum(scale, np.finfo(float).tiny)):
+            return None
         Q, R = scipy.linalg.qr(p.A.T, mode="economic", check_finite=False)  # A = R^T Q^T
         diag = np.abs(np.diag(R))
         if not diag.min() > GELS_RCOND * diag.max():  # rank-deficient rows: the range-space step
