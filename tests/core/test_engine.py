@@ -354,7 +354,7 @@ def test_a_candidate_fit_keeps_a_nearly_certified_interior_point_without_its_cro
         x_ip, cert, _ = ipm.interior_point(problem, x, feasible, FaceNewton(problem, 1e-14), gap_tol=1e-14,
                                            eliminate=False, crossover_above=above)
         runs[above] = (x_ip, cert, list(crossed))
-    (x0, c0, crossed0), (x1, c1, crossed1) = runs[0.0], runs[blocks.CANDIDATE_GAP]
+    (_, _, crossed0), (_, c1, crossed1) = runs[0.0], runs[blocks.CANDIDATE_GAP]
     assert not c1.converged and 1e-14 < c1.duality_gap <= blocks.CANDIDATE_GAP and crossed1 == []
     assert len(crossed0) == 1  # the same stop, crossed over
     crossed.clear()

@@ -14,14 +14,14 @@ from .barrier import Barrier
 from .face import FaceADMM, FaceNewton
 from .ipm import InteriorPoint, interior_point, ip_answer
 from .lyapunov import EigenbasisADMM, Lyapunov
+from .problem import Problem, Strategy, symmetric_answer, symmetric_start
+from ...errors import InputError
 
 #: ``fallback=False`` (lo.fit's candidates, which only predict held-back data): an interior
 #: point stopped uncertified with a gap at most this skips its crossover to the face (which
 #: certifies it or not at ~1e-8; measured on the held-out membrane loop at r = 20: 280 ms of
 #: a 340 ms candidate fit, for a gap of 2.6e-7 either way)
 CANDIDATE_GAP = 1e-6
-from .problem import Problem, Strategy, symmetric_answer, symmetric_start
-from ...errors import InputError
 
 
 #: :class:`Auto` tries the interior point on the active blocks alone from this r on
