@@ -33,7 +33,7 @@ import scipy.linalg
 
 from .. import compiled as _jit
 from .fractional import kernel
-from .linalg import from_eig, sym
+from .linalg import SPDSolver, from_eig, sym
 from .problem import Certificate
 from ...errors import InputError
 
@@ -553,8 +553,8 @@ class _NullSpaceSteps:
     through d_0 whatever the conditioning of Z^T W Z. Used where A has full row rank and
     m + k = n (Z spans the whole null space); else None."""
 
-    def __init__(self, p: QuadraticPSD, Q, R):
-        self.Z, self.Q, self.R = p.flat, Q, R
+    def __init__(self, Z, Q, R):
+        self.Z, self.Q, self.R = Z, Q, R
 
     @classmethod
     def of(cls, p: QuadraticPSD):
@@ -571,15 +571,12 @@ class _NullSpaceSteps:
         diag = np.abs(np.diag(R))
         if not diag.min() > GELS_RCOND * diag.max():  # rank-deficient rows: the range-space step
             return None
-        return cls(p, Q, R)
+        return cls(p.flat, Q, R)
 
     def step(self, W, y):
         d0 = self.Q @ scipy.linalg.solve_triangular(self.R, y, trans="T", check_finite=False)
         WZ = (self.Z.T @ W).T  # W symmetric: W Z with the sparse Z on the left
-        T = np.asarray(self.Z.T @ WZ)
-        dd = 1.0 / np.sqrt(np.diag(T))
-        T *= dd[:, None]
-        T *= dd[None, :]
-        fac = scipy.linalg.cho_factor(T, lower=True, overwrite_a=True, check_finite=False)
-        w = dd * scipy.linalg.cho_solve(fac, -dd * (WZ.T @ d0), check_finite=False)
-        return d0 + self.Z @ w
+        T = SPDSolver(np.asarray(self.Z.T @ WZ))  # Z^T W Z, equilibrated and factorised
+        if not T.ok:
+            raise np.linalg.LinAlgError("Z^T W Z is not positive definite")
+        return d0 + self.Z @ T.solve(-(WZ.T @ d0))

@@ -7,13 +7,13 @@ coefficients are M_v g (``gram_maps`` in vech coordinates), and the misfit is
 ||R (norms * [M_v g, c, b]) - z||^2 with the column-normalised, QR-compressed design R of
 ``fit_polynomial``. B (free) is minimised out exactly first. The Gram representation of a
 polynomial is not unique (q_i^2 q_j^2 = (q_i q_j)^2 = (q_i^2)(q_j^2)): f is flat along the
-null space N of M_v (:func:`gram_null`); the interior point's Schur matrix is positive
+null space N of M_v (:func:`gram_null_sparse`); the interior point's Schur matrix is positive
 definite all the same (the Gram block's barrier), and the certificate keeps the bound finite
 by making the Gram multiplier orthogonal to N - projecting it, and where that costs positive
 definiteness, the better of correcting it as Lambda + Lambda Z Lambda (Z in N) and adding a
 multiple of the data's moment matrix (:func:`moment_matrix`: positive definite, orthogonal
 to N; :meth:`~dolfinx_lopinf.core.lsq.psd_qp.QuadraticPSD.gap`). The polish steps through
-N's sparse basis (:func:`gram_null_sparse`).
+N's sparse basis itself.
 
 Constraints: G >= eps_g I, K = 2 G_11 >= eps diag(sig^2), C >= eps diag(sig^2): three
 blocks of n_g, r and r. The certificate is the interior point's (closed-form dual bound).
@@ -74,18 +74,6 @@ def gram_null_sparse(r: int):
             vv += [1.0 / Mv[mono, entries[0]], -1.0 / Mv[mono, e]]
             k += 1
     return scipy.sparse.csc_matrix((vv, (ii, jj)), shape=(Mv.shape[1], k))
-
-
-@functools.lru_cache(maxsize=8)
-def gram_null(r: int) -> np.ndarray:
-    """An orthonormal basis of the null space of :func:`gram_map_vech` (the Gram matrices of
-    the zero polynomial, in vech coordinates)."""
-    Mv = gram_map_vech(r)
-    Q, R, _ = scipy.linalg.qr(Mv.T, mode="full", pivoting=True, check_finite=False)
-    rank = int(np.sum(np.abs(np.diag(R)) > 1e-12 * np.abs(R[0, 0])))
-    out = np.ascontiguousarray(Q[:, rank:])  # orthonormal, orthogonal to Mv's rows
-    out.setflags(write=False)
-    return out
 
 
 def moment_matrix(points, r):
@@ -152,11 +140,12 @@ def _solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot, gap_tol, p
         P_C[np.arange(nC), ng + np.arange(nC)] = 1.0
         P.append(P_C)
         F.append(eps * np.diag((e * sig) ** 2))
-    N = np.zeros((n, gram_null(r).shape[1]))
-    N[:ng] = scipy.linalg.qr(gram_null(r) / s[:ng, None], mode="economic", check_finite=False)[0]
-    # the null space again, sparse, in the scaled unknowns (x = s x': a direction n is n / s)
-    flat = scipy.sparse.vstack([scipy.sparse.diags(1.0 / s[:ng]) @ gram_null_sparse(r),
-                                scipy.sparse.csc_matrix((nC, gram_null_sparse(r).shape[1]))]).tocsc()
+    # the null space in the scaled unknowns (x = s x': a direction n is n / s), sparse (the
+    # polish's steps) and orthonormalised (the certificate's projections)
+    Z = gram_null_sparse(r)
+    flat = scipy.sparse.vstack([scipy.sparse.diags(1.0 / s[:ng]) @ Z,
+                                scipy.sparse.csc_matrix((nC, Z.shape[1]))]).tocsc()
+    N = scipy.linalg.qr(flat.toarray(), mode="economic", check_finite=False)[0]
     problem = psd_qp.QuadraticPSD(H, h, float(z_p @ z_p), P, F, f_scale=float(z @ z), null=N,
                                   moment=moment, A=A_x, b=z_p, f_const=f_const, flat=flat)
     x0 = _start(problem, Mv, A_x, z_p, r, n_g, ng, nC)
