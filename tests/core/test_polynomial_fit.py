@@ -334,3 +334,26 @@ def test_least_norm_is_the_minimum_norm_least_squares_solution():
     assert np.allclose(d, np.linalg.lstsq(A, y, rcond=None)[0], rtol=1e-10, atol=1e-12)
     tall, b = rng.standard_normal((80, 30)), rng.standard_normal(80)  # the least-squares solution
     assert np.allclose(psd_qp.least_norm(tall, b), np.linalg.lstsq(tall, b, rcond=None)[0], rtol=1e-10)
+
+
+def test_the_scaled_correction_removes_the_null_part_or_is_refused(monkeypatch):
+    """QuadraticPSD._scaled_correction on the r = 4 probes' last iterate: the corrected Gram
+    multiplier has no part along the null space beyond rounding and stays >= 0 where Lambda_0
+    is; a solve that does nothing (y = 0: the whole part left) is refused, not used."""
+    import scipy.linalg
+
+    from dolfinx_lopinf.core.lsq import psd_qp
+
+    seen, orig = [], psd_qp.polish
+    monkeypatch.setattr(psd_qp, "polish", lambda p, x, Lam, gap: seen.append((p, Lam)) or orig(p, x, Lam, gap))
+    pl.fit_polynomial(_svk_probes(), constraint="sos", solver="ipm")
+    (p, Lam), = seen
+    Lam = [psd_qp.sym(Lk) for Lk in Lam]
+    c = p.null.T @ p.lin(Lam)
+    out = p._scaled_correction(Lam, c)
+    assert out is not None
+    lin = p.lin([out] + Lam[1:])
+    assert np.linalg.norm(p.null.T @ lin) <= max(1e-6 * np.linalg.norm(c),
+                                                 psd_qp.LEFT_ROUNDING * np.finfo(float).eps * np.linalg.norm(lin))
+    monkeypatch.setattr(scipy.linalg, "solve", lambda T, b, **kw: np.zeros_like(b))
+    assert p._scaled_correction(Lam, c) is None

@@ -49,6 +49,9 @@ SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
 FLAT_NEAR = 10.0
 #: a step length below SLOW_STEP is a sign of a jam: the certified gap is computed there
 SLOW_STEP = 0.5
+#: QuadraticPSD._scaled_correction: a null-space part of its multiplier up to LEFT_ROUNDING u
+#: |lin| is the rounding of computing it (measured up to 233 u |lin|)
+LEFT_ROUNDING = 1e4
 
 
 def _kernel_loop(P, Q, iu0, iu1, H):
@@ -278,9 +281,14 @@ class QuadraticPSD:
         except (np.linalg.LinAlgError, ValueError):
             return None
         out = sym(Lam[0] + Lam[0] @ unvech(scale * (N0 @ y), n0) @ Lam[0])
-        left = self.null.T @ self.lin([out] + Lam[1:])
-        if not np.all(np.isfinite(out)) or np.linalg.norm(left) > 1e-6 * np.linalg.norm(c):
-            return None  # the solve lost the constraint to rounding: not a valid multiplier
+        lin = self.lin([out] + Lam[1:])
+        left = np.linalg.norm(self.null.T @ lin)
+        # what is left along N must be no more than what remains of c or the rounding of lin
+        # (measured on the SVK trajectory probes: up to 5.5e-7 |c| and 233 u |lin|; a failed
+        # solve leaves ~|c|)
+        if not np.all(np.isfinite(out)) or left > max(1e-6 * np.linalg.norm(c),
+                                                       LEFT_ROUNDING * np.finfo(float).eps * np.linalg.norm(lin)):
+            return None  # the solve lost the constraint: not a valid multiplier
         return out
 
     def _gap_at(self, x, Lam) -> float:
