@@ -73,6 +73,48 @@ def test_spd_solver_equilibrates_and_falls_back_on_singular_matrices():
 
 
 
+def test_whitened_solves_give_the_schur_complement_of_a_badly_scaled_matrix():
+    """G = L^-1 B (H = L L^T, L the equilibrated factor with its scaling): G^T G = B^T H^-1 B
+    and unwhiten(whiten(b)) = H^-1 b, on the scaling of test_spd_solver_equilibrates..."""
+    rng = np.random.default_rng(4)
+    A = rng.standard_normal((8, 8))
+    d = np.logspace(-5, 5, 8)
+    H = d[:, None] * (A @ A.T + np.eye(8)) * d[None, :]
+    B = d[:, None] * rng.standard_normal((8, 3))  # rows scaled with H: B^T H^-1 B is O(1)
+    solver = linalg.SPDSolver(H)
+    G = solver.whiten(B)
+    exact = (B / d[:, None]).T @ np.linalg.solve(A @ A.T + np.eye(8), B / d[:, None])
+    assert np.allclose(G.T @ G, exact, rtol=1e-12, atol=1e-12 * np.abs(exact).max())
+    b = B[:, 0]
+    assert np.allclose(solver.unwhiten(solver.whiten(b)) * d,
+                       np.linalg.solve(A @ A.T + np.eye(8), b / d), rtol=1e-10)
+    assert np.allclose(solver.whiten(b), G[:, 0], rtol=1e-14, atol=0)
+
+
+def test_the_reduced_problem_of_the_active_blocks_is_the_exact_schur_complement():
+    """_ActiveBlocks minimises the presumed-inactive blocks out: for every x_a, the full
+    objective at full(x_a) equals the reduced one, and full(x_a) minimises over x_f."""
+    from dolfinx_lopinf.core.lsq import ipm
+
+    rng = np.random.default_rng(5)
+    r, p = 3, 6
+    L = rng.standard_normal((p, p)) * np.logspace(0, -3, p)[:, None]
+    Z = rng.standard_normal((r, p))
+    problem = lsq.Problem(L, Z, 2, 1e-8)
+    reduced = ipm._ActiveBlocks(problem, np.array([False, True]))
+    assert reduced.ok
+    H, h = problem.normal_equations
+    for _ in range(3):
+        xa = rng.standard_normal(len(reduced.a_idx))
+        x = reduced.full(xa)
+        f_full = x @ H @ x + 2 * h @ x + np.sum(Z**2)
+        f_red = xa @ reduced.Hr @ xa + 2 * reduced.hr @ xa + reduced.const
+        assert np.isclose(f_full, f_red, rtol=1e-10)
+        grad_f = (H @ x + h)[reduced.f_idx]  # stationary in the eliminated unknowns
+        assert np.linalg.norm(grad_f) <= 1e-10 * np.linalg.norm(H[reduced.f_idx]) * np.linalg.norm(x)
+    assert np.array_equal(reduced.Hr, reduced.Hr.T)
+
+
 def test_cholesky_solve_is_the_two_triangular_solves_of_potrs():
     rng = np.random.default_rng(3)
     A = rng.standard_normal((30, 30))

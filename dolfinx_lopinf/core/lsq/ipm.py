@@ -419,19 +419,19 @@ class _ActiveBlocks:
         pos = np.arange(problem.index.n).reshape(problem.n_blocks, problem.index.nv)
         self.a_idx, self.f_idx = pos[~feasible].ravel(), pos[feasible].ravel()
         a, f = self.a_idx, self.f_idx
-        Hff = SPDSolver(np.ascontiguousarray(_sub(H, f, f)))
+        self.Hff = Hff = SPDSolver(np.ascontiguousarray(_sub(H, f, f)))
         self.ok = Hff.ok
         self.below, self.iterations = 0, 0  # the watch's run of checks below eps; the run's length
-        if self.ok:
-            Hfa = _sub(H, f, a)
-            self.W = Hff.solve(np.column_stack([Hfa, h[f]]))  # H_ff^-1 [H_fa, h_f]
-            self.Hr = sym(_sub(H, a, a) - Hfa.T @ self.W[:, :-1])
-            self.hr = h[self.a_idx] - Hfa.T @ self.W[:, -1]
-            self.const = float(np.sum(problem.Z**2) - h[self.f_idx] @ self.W[:, -1])
+        if self.ok:  # H_ff = L L^T: H_af H_ff^-1 H_fa = G^T G with G = L^-1 H_fa (one trsm, one syrk)
+            self.G, self.g = Hff.whiten(_sub(H, f, a)), Hff.whiten(h[f])
+            GtG = scipy.linalg.blas.dsyrk(1.0, self.G, trans=1, lower=0)  # its upper triangle
+            self.Hr = sym(_sub(H, a, a) - (GtG + np.triu(GtG, 1).T))
+            self.hr = h[self.a_idx] - self.G.T @ self.g
+            self.const = float(np.sum(problem.Z**2) - self.g @ self.g)
 
     def full(self, xa):
         xf = np.empty(self.problem.index.n)
-        xf[self.a_idx], xf[self.f_idx] = xa, -(self.W[:, -1] + self.W[:, :-1] @ xa)
+        xf[self.a_idx], xf[self.f_idx] = xa, -self.Hff.unwhiten(self.g + self.G @ xa)
         return xf
 
     def eliminated_ok(self, xf) -> bool:

@@ -123,6 +123,20 @@ class SPDSolver:
         """The equilibrated matrix H / (d d^T) (formed again: the factor overwrote it)."""
         return self._H / np.outer(self.d, self.d)
 
+    def whiten(self, B: np.ndarray) -> np.ndarray:
+        """G = L^-1 B for the factor H = L L^T (L = D Ls, Ls the equilibrated factor), one
+        triangular solve: G^T G = B^T H^-1 B (a Schur complement as one ``syrk``, where
+        B^T (H^-1 B) needs two solves and a product). Needs ``ok``."""
+        d = self.d if B.ndim == 1 else self.d[:, None]
+        if B.ndim == 1:
+            return scipy.linalg.blas.dtrsv(self.c, B / d, lower=1)
+        return scipy.linalg.blas.dtrsm(1.0, self.c, np.asfortranarray(B / d), lower=1,
+                                       overwrite_b=1)
+
+    def unwhiten(self, g: np.ndarray) -> np.ndarray:
+        """L^-T g for one vector: H^-1 b = unwhiten(whiten(b))."""
+        return scipy.linalg.blas.dtrsv(self.c, g, lower=1, trans=1) / self.d
+
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         d = self.d if rhs.ndim == 1 else self.d[:, None]
         if self.ok and rhs.ndim == 1:
