@@ -123,7 +123,7 @@ def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
     Qs = np.empty((9, r, r))
     coefs = np.empty(9)
     for k in range(b):
-        for l in range(b):  # every pair: fractional.schur_terms
+        for l in range(k, b):  # the upper pairs, the lower ones mirrored: fractional.schur_terms
             ks, ls = slice(k * r, (k + 1) * r), slice(l * r, (l + 1) * r)
             Ps[0], Qs[0], coefs[0] = Mi, GY[ls, ks], 1.0
             Ps[1], Qs[1], coefs[1] = Om, GmY[ls, ks], 1.0 / s
@@ -142,6 +142,10 @@ def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
                 Ps[nt], Qs[nt], coefs[nt] = Xi[k], Lam[k], 1.0
                 nt += 1
             _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, k * nv, l * nv)
+            if l > k:
+                for p in range(nv):
+                    for q in range(nv):
+                        H[l * nv + q, k * nv + p] = H[k * nv + p, l * nv + q]
 
 
 def _lin_parts(dx, full, r, b, L, JY, Jm, Ym, Y, Mi, Om, D, s):
