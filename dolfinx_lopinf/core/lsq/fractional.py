@@ -135,8 +135,9 @@ def schur_terms(Mi, Ym, Y, Om, s, L, r, b) -> dict:
     kernel work at b = 3. Mirroring moves the iterates by rounding, so single fits near the
     tolerance can flip; over the 64 learned-mass problems lo.fit poses on five held-out loop
     recordings, each as posed and in three copies perturbed at 1e-15 (256 fits): certified
-    239 -> 240, iterations 6,247 -> 6,272, every flip (7) on the six problems that flip under
-    perturbation alone."""
+    239 -> 240, iterations 6,247 -> 6,272; the 7 flips on four problems, three of which flip
+    between perturbed copies with every pair assembled too (the fourth certified in no copy
+    before, in one now)."""
     D = Ym - Y
     JY = L.copy()
     JY[:r] -= Y
