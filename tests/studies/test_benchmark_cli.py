@@ -76,3 +76,26 @@ def test_benchmark_fit_table_on_recorded_snapshots(tmp_path, capsys):
     assert ok["n_states"] == 4 and ok["n_samples"] == 400 and "refused" not in ok
     assert "refused" in refused and "numerical rank" in refused["refused"]
     assert "lo.fit defaults end to end" in capsys.readouterr().out
+
+
+def test_benchmark_table_on_recorded_snapshots(tmp_path, capsys):
+    """--table --sets file:PATH: the Mh = I fit on recorded snapshots (Euclidean POD, the
+    Newmark relation, every sample) against Clarabel, one row per r; an r the snapshots cannot
+    carry is a row with its refusal."""
+    import numpy as np
+
+    import dolfinx_lopinf as lo
+
+    t = np.arange(300) * 0.01
+    Q = np.vstack([np.cos((k + 1) * t + 0.3 * k) * np.exp(-0.05 * k * t) for k in range(6)])
+    U = np.sin(0.9 * t)[None, :]
+    path = tmp_path / "loop.npz"
+    lo.Snapshots(t, Q, U=U).save(path)
+    out = tmp_path / "bench.json"
+    rows = benchmark.main(["--table", "--sets", f"file:{path}", "--r", "4,8", "--repeats", "1",
+                           "--out", str(out)])
+    ok, refused = rows
+    assert ok["set"] == f"file:{path}" and ok["r"] == 4 and ok["K"] == 300 - 2
+    assert ok["certified_gap"] <= 1e-8 and ok["min_eig_K"] >= 1e-8 * (1 - 1e-9) and ok["symmetric"]
+    assert refused["r"] == 8 and "numerical rank" in refused["refused"]
+    assert "refused" in capsys.readouterr().out
