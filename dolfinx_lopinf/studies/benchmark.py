@@ -173,10 +173,14 @@ def _time_fit(fit, with_numpy: bool, repeats: int):
             float(np.median(solve_np)) if solve_np else float("nan"))
 
 
+def _set_name(kind: str) -> str:
+    """The table's name of a data set (a recorded file: the start of its stem)."""
+    return Path(kind[5:]).stem[:6] if kind.startswith("file:") else kind
+
+
 def _print_row(row: dict) -> None:
     it, gap, active = row["iterations"], row["certified_gap"], row["active_eigenvalues"]
-    name = row["set"] if not row["set"].startswith("file:") else Path(row["set"][5:]).stem[:6]
-    print(f"{name:>6} {row['r']:>3} {row['K']:>6} {row['ours_seconds'] * 1e3:9.2f} "
+    print(f"{_set_name(row['set']):>6} {row['r']:>3} {row['K']:>6} {row['ours_seconds'] * 1e3:9.2f} "
           f"{row['ours_solve_seconds'] * 1e3:8.2f} {row['ours_solve_seconds_min'] * 1e3:6.2f} "
           f"{row['ours_solve_seconds_numpy'] * 1e3:8.2f} "
           f"{row['cvxpy_compressed_seconds'] * 1e3:11.1f} {row['cvxpy_naive_seconds'] * 1e3:12.1f} "
@@ -191,8 +195,7 @@ def _bench_one(kind: str, r: int, K: int, beam, eps: float, args) -> dict:
     fit, Qh, dQh, target, U, damping = _fit_for(kind, r, K, beam, eps)
     if kind.startswith("file:"):
         K = Qh.shape[1]  # recorded snapshots: every sample
-    ops, t_ours, solve_s, solve_min, solve_np = _time_fit(
-        fit, damping and kind != "beam", args.repeats)
+    ops, t_ours, solve_s, solve_min, solve_np = _time_fit(fit, damping, args.repeats)  # forced kinds
     gram = inference.gram_data(Qh, dQh, target, U, damping=damping)
     t_comp, theta_ref = _median_time(
         functools.partial(_cvxpy_compressed, gram, eps, kind), 3 if args.table else 1)
@@ -287,7 +290,7 @@ def main(argv=None):
                     if not kind.startswith("file:"):
                         raise
                     rows.append({"set": kind, "r": r, "refused": str(exc)[:160]})
-                    print(f"{Path(kind[5:]).stem[:6]:>6} {r:>3} refused: {rows[-1]['refused'][:90]}")
+                    print(f"{_set_name(kind):>6} {r:>3} refused: {rows[-1]['refused'][:90]}")
                     continue
                 _print_row(rows[-1])
     extra = _mass_and_poly(args)
