@@ -422,10 +422,9 @@ class _ActiveBlocks:
         self.Hff = Hff = SPDSolver(np.ascontiguousarray(_sub(H, f, f)))
         self.ok = Hff.ok
         self.below, self.iterations = 0, 0  # the watch's run of checks below eps; the run's length
-        if self.ok:  # H_ff = L L^T: H_af H_ff^-1 H_fa = G^T G with G = L^-1 H_fa (one trsm, one syrk)
+        if self.ok:  # H_ff = L L^T: H_af H_ff^-1 H_fa = G^T G with G = L^-1 H_fa (one trsm)
             self.G, self.g = Hff.whiten(_sub(H, f, a)), Hff.whiten(h[f])
-            GtG = scipy.linalg.blas.dsyrk(1.0, self.G, trans=1, lower=0)  # its upper triangle
-            self.Hr = sym(_sub(H, a, a) - (GtG + np.triu(GtG, 1).T))
+            self.Hr = sym(_sub(H, a, a) - self.G.T @ self.G)
             self.hr = h[self.a_idx] - self.G.T @ self.g
             self.const = float(np.sum(problem.Z**2) - self.g @ self.g)
 

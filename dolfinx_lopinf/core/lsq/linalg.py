@@ -125,12 +125,11 @@ class SPDSolver:
 
     def whiten(self, B: np.ndarray) -> np.ndarray:
         """G = L^-1 B for the factor H = L L^T (L = D Ls, Ls the equilibrated factor), one
-        triangular solve: G^T G = B^T H^-1 B (a Schur complement as one ``syrk``, where
-        B^T (H^-1 B) needs two solves and a product). Needs ``ok``."""
-        d = self.d if B.ndim == 1 else self.d[:, None]
+        triangular solve: G^T G = B^T H^-1 B (a Schur complement from one solve, where
+        B^T (H^-1 B) needs two). Needs ``ok``."""
         if B.ndim == 1:
-            return scipy.linalg.blas.dtrsv(self.c, B / d, lower=1)
-        return scipy.linalg.blas.dtrsm(1.0, self.c, np.asfortranarray(B / d), lower=1,
+            return scipy.linalg.blas.dtrsv(self.c, B / self.d, lower=1)
+        return scipy.linalg.blas.dtrsm(1.0, self.c, np.asfortranarray(B / self.d[:, None]), lower=1,
                                        overwrite_b=1)
 
     def unwhiten(self, g: np.ndarray) -> np.ndarray:
