@@ -104,7 +104,9 @@ def _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, ro, co):
 
 
 def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
-    """The Schur matrix (fractional.schur_terms + the floors' kernels) into H."""
+    """The Schur matrix (fractional.schur_terms + the floors' kernels) into H: its diagonal
+    block pairs whole, the pairs k < l above them only - their mirrors below are the
+    transposes, and :func:`_equilibrate` reads the upper block triangle alone."""
     nv = iu0.shape[0]
     D = Ym - Y
     JY = L.copy()
@@ -142,10 +144,6 @@ def _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H):
                 Ps[nt], Qs[nt], coefs[nt] = Xi[k], Lam[k], 1.0
                 nt += 1
             _kernel_block(Ps, Qs, coefs, nt, iu0, iu1, H, k * nv, l * nv)
-            if l > k:
-                for p in range(nv):
-                    for q in range(nv):
-                        H[l * nv + q, k * nv + p] = H[k * nv + p, l * nv + q]
 
 
 def _lin_parts(dx, full, r, b, L, JY, Jm, Ym, Y, Mi, Om, D, s):
@@ -270,12 +268,9 @@ def _steps(SM, SO, SX, SL, s, dM, dWm, dT22, dY, dOm, dX, dL, r, b):
     return out
 
 
-def _equilibrate(H, a, c):
-    """H <- sym(H) + gam a a^T and c = diag(dd) H diag(dd) (dd = diag(H)^-1/2, gam =
-    1 / |a diag(sym(H))^-1/2|^2): fractional._State.step's arithmetic element by element - the
-    same roundings - in one pass over 32 x 32 tiles, into the caller's c (whole-matrix
-    expressions made four passes and four n x n temporaries: 3.6 ms against 0.8 ms at
-    n = 630). Returns (gam, dd)."""
+def _equilibrate(H, a, c, nv):
+    """gam = 1 / |a diag(H)^-1/2|^2 and dd = diag(H + gam a a^T)^-1/2 (fractional._State.step's
+    arithmetic), and c = :func:`_scaled_upper` of H without a shift. Returns (gam, dd)."""
     n = H.shape[0]
     d0 = np.empty(n)
     for i in range(n):
@@ -285,19 +280,29 @@ def _equilibrate(H, a, c):
     dd = np.empty(n)
     for i in range(n):
         dd[i] = 1.0 / np.sqrt(H[i, i] + gam * a[i] * a[i])
+    _scaled_upper(H, a, gam, dd, nv, 0.0, c)
+    return gam, dd
+
+
+def _scaled_upper(H, a, gam, dd, nv, shift, c):
+    """The upper triangle (C order: the lower one of the F-ordered view dpotrf reads) of
+    c = diag(dd) (sym(H) + gam a a^T) diag(dd) + shift I, element by element as
+    fractional._State.step rounds it (sym(H): the mean of H_ij and H_ji within a diagonal
+    block pair of nv x nv; above it H_ij itself - its mirror, the numpy path's, is equal to
+    the last bit, so the mean is H_ij exactly). One pass in 32 x 32 tiles; H is only read and
+    c's lower triangle not written (whole-matrix expressions made four passes and four n x n
+    temporaries: 3.6 ms against 0.8 ms at n = 630; writing both triangles of H and c, 1.1 ms)."""
+    n = H.shape[0]
     T = 32
     for i0 in range(0, n, T):
         for j0 in range(i0, n, T):
             for i in range(i0, min(i0 + T, n)):
+                bi = i // nv
                 for j in range(max(j0, i), min(j0 + T, n)):
-                    v = 0.5 * (H[i, j] + H[j, i])
-                    hij = v + gam * a[i] * a[j]
-                    hji = v + gam * a[j] * a[i]
-                    H[i, j] = hij
-                    H[j, i] = hji
-                    c[i, j] = hij * (dd[i] * dd[j])
-                    c[j, i] = hji * (dd[j] * dd[i])
-    return gam, dd
+                    v = 0.5 * (H[i, j] + H[j, i]) if j // nv == bi else H[i, j]
+                    c[i, j] = (v + gam * a[i] * a[j]) * (dd[i] * dd[j])
+    for i in range(n):
+        c[i, i] += shift
 
 
 def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f_floor, H, c):
@@ -346,16 +351,13 @@ def _step(xs, Y, Om, Lam, state, L, a, x_floor, full, iu0, iu1, Dw, r, b, rho, f
             return
         Xi[k] = np.dot(SX[k].T, SX[k])
     _schur(Mi, Ym, Y, Om, s, L, Xi, Lam, iu0, iu1, r, b, H)
-    gam, dd = _equilibrate(H, a, c)
+    gam, dd = _equilibrate(H, a, c, nv)
     ok = False
     iw = np.zeros(4, dtype=np.int32)
     ch = np.array([76, 78, 84], dtype=np.uint8)
     for shift in SHIFTS:
         if shift != 0.0:  # c was overwritten by the failed factorisation
-            for i in range(n):
-                for j in range(n):
-                    c[i, j] = H[i, j] * (dd[i] * dd[j])
-                c[i, i] += shift
+            _scaled_upper(H, a, gam, dd, nv, shift, c)
         ok = _potrf(c, iw, ch)
         if ok:
             break
@@ -532,7 +534,7 @@ _SIGNATURES = {
 # helpers are plain functions numba compiles inline with their callers (njit on first use)
 _HELPERS = ("_sym", "_theta", "_vech_blocks", "_blocks", "_kernel_block", "_schur", "_lin_parts",
             "_chol_solve", "_inv_chol", "_spd_inv", "_pencil", "_direction", "_steps", "_equilibrate",
-            "_pairwise_sum")
+            "_scaled_upper", "_pairwise_sum")
 
 
 def _bind_helpers():
