@@ -301,6 +301,39 @@ def test_a_jam_stops_at_any_level_but_a_plateau_with_a_falling_misfit_does_not()
     assert not fractional._stalled(falling, falling[-1][2], gap_tol)
 
 
+def test_a_certificate_that_stops_improving_ends_the_run_but_a_late_one_does_not():
+    """fractional._proof_stalled on the best certified gap after each attempt: flat over
+    STALL_FLAT attempts stops; the sequence of a held-out fit that certified at its eleventh
+    attempt (six at 1e-4, then 2e-5, 2e-5, 9e-7, 2e-8, 1e-9) is never stopped."""
+    n = fractional.STALL_FLAT
+    flat = [2.7e-3] * (n + 1)
+    assert fractional._proof_stalled(flat)
+    assert not fractional._proof_stalled(flat[:n])  # not enough attempts yet
+    late = [1e-4] * 6 + [2e-5, 2e-5, 9e-7, 2e-8, 1e-9]
+    assert not any(fractional._proof_stalled(late[:k]) for k in range(1, len(late) + 1))
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_a_run_whose_certificates_do_not_improve_stops_after_stall_flat_attempts(backend, monkeypatch):
+    """Every certificate refused (gap 1e-3): the run stops STALL_FLAT attempts after the
+    first instead of iterating to max_iter, and says why."""
+    from dolfinx_lopinf.core import compiled
+
+    if backend == "numba" and not compiled.available():
+        pytest.skip("numba unavailable")
+    p = _prepared(2).problem
+    real, calls = fractional.FractionalProblem.certify_best, []
+
+    def refuse(self, *args):
+        calls.append(1)
+        return dict(real(self, *args), duality_gap=1e-3)
+
+    monkeypatch.setattr(fractional.FractionalProblem, "certify_best", refuse)
+    cert = fractional.MassInteriorPoint(backend=backend, max_iter=80).solve(p)[3]
+    assert not cert.converged and "not halved" in cert.details["stopped"]
+    assert len(calls) == fractional.STALL_FLAT + 1 and cert.iterations < 80
+
+
 @pytest.mark.parametrize("backend", ["numba"])
 def test_compiled_iteration_is_the_numpy_iteration(backend):
     """The compiled iteration (_fractional_compiled) reproduces the numpy one to rounding:

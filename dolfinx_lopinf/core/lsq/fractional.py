@@ -355,11 +355,25 @@ def _stalled(trace, est, gap_tol) -> bool:
     return short or flat
 
 
+def _proof_stalled(proven) -> bool:
+    """The certificates stopped improving: the best certified gap after each attempt
+    (``proven``) not halved over the last STALL_FLAT attempts. Once the gap estimate is below
+    the tolerance the iterations only serve the certificate; the estimate can go on falling
+    (to 5e-14 on a held-out Newmark loop recorded as (u, v, a), r = 20: 20 iterations and
+    attempts after the first one, the certified gap held at 2.7e-3 throughout, 0.35 s of a
+    1.2 s candidate fit). Measured on the 64 learned-mass problems lo.fit poses on five
+    held-out loop recordings, as posed and in three perturbed copies (256 fits, 433 attempts):
+    10 runs end earlier, 85 iterations less, none certified lost (certified after 11
+    attempts, the first six at 1e-4: 2e-5 at the seventh; with 5 attempts instead of 6 that
+    run would have stopped uncertified)."""
+    return len(proven) > STALL_FLAT and proven[-1] > 0.5 * proven[-STALL_FLAT - 1]
+
+
 def _run_numpy(problem, xs, gap_tol, max_iter):
     """The iteration (module docstring): (x, Y, tau, iterations, best certificate, why it
     stopped, trace of (step, sigma, gap estimate, misfit f))."""
     state = _State.initial(problem, xs)
-    best, best_state, trace, stopped = None, None, [], "max_iter"
+    best, best_state, trace, stopped, proven = None, None, [], "max_iter", []
     it = 0
     for it in range(1, max_iter + 1):
         try:
@@ -375,11 +389,16 @@ def _run_numpy(problem, xs, gap_tol, max_iter):
             c = problem.certify_best(state.xs, state.Y, state.tau, gap_tol)
             if best is None or c["duality_gap"] < best["duality_gap"]:
                 best, best_state = c, (state.xs.copy(), state.Y.copy(), state.tau)
+            proven.append(best["duality_gap"])
             if c["duality_gap"] <= gap_tol:
                 stopped = "certified"
                 break
             if stalled:
                 stopped = f"stalled at iteration {it}"
+                break
+            if _proof_stalled(proven):
+                stopped = (f"stalled at iteration {it}: the certified gap not halved over "
+                           f"{STALL_FLAT} attempts")
                 break
     if best_state is None:
         best = problem.certify_best(state.xs, state.Y, state.tau, gap_tol)
@@ -409,7 +428,7 @@ def _run_compiled(problem, xs, gap_tol, max_iter):
     r, b = problem.r, problem.n_blocks
     f_floor = problem.tau_of(0.0) * r / problem.rho  # tau's floor (F_FLOOR f_scale)
     gap_floor = problem.gap_reference(0.0)  # the gap's (GAP_FLOOR f_scale)
-    best, best_state, trace, stopped = None, None, [], "max_iter"
+    best, best_state, trace, stopped, proven = None, None, [], "max_iter", []
     it = 0
     work_H, work_c = np.empty((ix.n, ix.n)), np.empty((ix.n, ix.n))  # the step's workspaces
     for it in range(1, max_iter + 1):
@@ -425,11 +444,16 @@ def _run_compiled(problem, xs, gap_tol, max_iter):
             c = problem.certify_best(xs, Y, state[1], gap_tol)
             if best is None or c["duality_gap"] < best["duality_gap"]:
                 best, best_state = c, (xs.copy(), Y.copy(), float(state[1]))
+            proven.append(best["duality_gap"])
             if c["duality_gap"] <= gap_tol:
                 stopped = "certified"
                 break
             if stalled:
                 stopped = f"stalled at iteration {it}"
+                break
+            if _proof_stalled(proven):
+                stopped = (f"stalled at iteration {it}: the certified gap not halved over "
+                           f"{STALL_FLAT} attempts")
                 break
     if best_state is None:
         best = problem.certify_best(xs, Y, state[1], gap_tol)
