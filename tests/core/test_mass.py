@@ -313,6 +313,22 @@ def test_a_certificate_that_stops_improving_ends_the_run_but_a_late_one_does_not
     assert not any(fractional._proof_stalled(late[:k]) for k in range(1, len(late) + 1))
 
 
+def test_the_projected_dual_is_tried_again_only_while_its_gap_halves():
+    """fractional._Attempts: the projection (a QR of (r p) x ((b - 1) r (r + 1) / 2), 40 ms at
+    r = 20) is asked for at the first attempt and the second, and after that only while its
+    gap halves from one attempt to the next; attempts that did not try it leave that as it is."""
+    a = fractional._Attempts()
+    assert a.project
+    a.record({"duality_gap": 1e-3, "projected_gap": 1e-4}, {"duality_gap": 1e-4})
+    assert a.project  # one projected gap: nothing to compare yet
+    a.record({"duality_gap": 1e-3, "projected_gap": 4e-5}, {"duality_gap": 4e-5})
+    assert a.project  # halved
+    a.record({"duality_gap": 1e-3, "projected_gap": 3e-5}, {"duality_gap": 3e-5})
+    assert not a.project  # not halved: no more projections in this run
+    a.record({"duality_gap": 2e-5}, {"duality_gap": 2e-5})
+    assert not a.project and a.proven == [1e-4, 4e-5, 3e-5, 2e-5]
+
+
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
 def test_a_run_whose_certificates_do_not_improve_stops_after_stall_flat_attempts(backend, monkeypatch):
     """Every certificate refused (gap 1e-3): the run stops STALL_FLAT attempts after the
