@@ -224,7 +224,9 @@ def _monomial_scale(sig, tuples):
 
 def _compress(A, b, ridge):
     """R, z with ||A x - b||^2 + ridge^2 sigma1^2 ||D x||^2 = ||R x - z||^2 + const, where
-    D = diag(column norms) (columns normalised first; R upper triangular p x p)."""
+    D = diag(column norms) (columns normalised first; R upper triangular p x p). Returns
+    (R, z, column norms, condition, numerical rank, |A x - b|^2 at the least-squares x
+    without the ridge)."""
     norms = np.linalg.norm(A, axis=0)
     norms[norms == 0] = 1.0
     An = A / norms
@@ -241,8 +243,7 @@ def _compress(A, b, ridge):
         Rx, z = R2[:p, :p], R2[:p, p]
     cond = float(s[0] / max(s[-1], 1e-300))
     rank = int(np.sum(s > 1e-10 * s[0]))
-    _compress.residual2 = float(R[p, p] ** 2)  # |A x - b|^2 at the least-squares x (no ridge)
-    return Rx, z, norms, cond, rank
+    return Rx, z, norms, cond, rank, float(R[p, p] ** 2)
 
 
 def fit_polynomial(data, *, constraint: str = "sos", damping: bool = True, eps: float = 1e-8,
@@ -321,7 +322,7 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
     sig = np.sqrt(np.mean(data.plus ** 2, axis=1))
     sig = np.where(sig > 0, sig, 1.0)
     A, b = _natural_rows(*_design(data, damping, sig), sig, N)
-    R, z, norms, cond, rank = _compress(A, b, ridge)
+    R, z, norms, cond, rank, residual2 = _compress(A, b, ridge)
     t_data = time.perf_counter() - t0
     cert = {"constraint": constraint, "n_unknowns": nu, "data_condition": cond, "data_rank": rank,
             "data_columns": N, "state_scales": sig}
@@ -335,7 +336,7 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
 
         theta, G, solver_info = solve_sos(R, z, norms, r, m, damping, eps, eps_gram, sig, p_pot,
                                           points=0.5 * (data.minus + data.plus) / sig[:, None],
-                                          f_const=_compress.residual2)
+                                          f_const=residual2)
         if solver == "auto" and not solver_info["certified"] and \
                 not solver_info["duality_gap"] <= FALLBACK_GAP and _has_cvxpy():
             theta_c, G_c, info_c = _solve_cvxpy(R, z, norms, r, m, damping, constraint, eps,
@@ -588,7 +589,7 @@ def fit_force(data, *, damping: bool = True, ridge: float = 1e-10):
             blk[l, l * r:(l + 1) * r] = data.D1 / sig[:, None]
         A = np.hstack([A, blk.transpose(0, 2, 1).reshape(r * N, -1)])
     A, b = _natural_rows(A, b, sig, N)
-    Rx, z, norms, cond, rank = _compress(A, b, ridge)
+    Rx, z, norms, cond, rank, _ = _compress(A, b, ridge)
     x = scipy.linalg.solve_triangular(Rx, z) / norms
     Af = x[:r * P].reshape(r, P)
     k = r * P
