@@ -94,13 +94,12 @@ class PSDBlocks(Strategy):
                 theta, cert = again.solve_blocks(resolved)
                 cert.details.update(ridge_raised_to=ridge, gap_floor=resolved.floor)
                 return theta, cert
-        if best is not None and (not self.fallback or best[1].duality_gap <= FALLBACK_ABOVE_GAP):
-            # the interior point's point, uncertified
-            return problem.index.theta(best[0]), ip_answer(best[1], details, newton, t0)
-        theta, cert = self.face_admm.run(problem, x, newton, details, t0)
-        if best is not None and not cert.converged and best[1].duality_gap < cert.duality_gap:
-            return problem.index.theta(best[0]), ip_answer(best[1], details, newton, t0)
-        return theta, cert
+        if best is None or (self.fallback and best[1].duality_gap > FALLBACK_ABOVE_GAP):
+            theta, cert = self.face_admm.run(problem, x, newton, details, t0)
+            if best is None or cert.converged or not best[1].duality_gap < cert.duality_gap:
+                return theta, cert
+        # the interior point's point, uncertified (no fallback, or none that did better)
+        return problem.index.theta(best[0]), ip_answer(best[1], details, newton, t0)
 
 
 def _resolved(problem: Problem):
@@ -125,8 +124,9 @@ class Auto(Strategy):
 
     Two blocks (K, C): :class:`PSDBlocks`, and the log barrier (:class:`Barrier`) if that is
     not certified - unless the interior point stopped at a gap of at most FALLBACK_ABOVE_GAP,
-    where the fallbacks did no better in seconds (measured: FALLBACK_ABOVE_GAP). Where H is singular to double precision or the interior point fails,
-    :meth:`Problem.resolved` decides first whether double precision is why (condition of H
+    where the fallbacks did no better in seconds (measured there); of two uncertified answers
+    the smaller gap is kept. Where H is singular to double precision or the interior point
+    fails, :meth:`Problem.resolved` decides first whether double precision is why (condition of H
     beyond COND_MAX: the ridge is raised; beyond ~2e9: the gap floor rises); if so the fit is
     solved again on that problem (``PSDBlocks(resolve=True)``; certificate:
     ``ridge_raised_to``, ``gap_floor``). One block (K): the Lyapunov minimiser if it is
