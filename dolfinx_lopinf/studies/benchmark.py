@@ -195,7 +195,7 @@ def _bench_one(kind: str, r: int, K: int, beam, eps: float, args) -> dict:
     fit, Qh, dQh, target, U, damping = _fit_for(kind, r, K, beam, eps)
     if kind.startswith("file:"):
         K = Qh.shape[1]  # recorded snapshots: every sample
-    ops, t_ours, solve_s, solve_min, solve_np = _time_fit(fit, damping, args.repeats)  # forced kinds
+    ops, t_ours, solve_s, solve_min, solve_np = _time_fit(fit, damping, args.repeats)  # damped: numpy too
     gram = inference.gram_data(Qh, dQh, target, U, damping=damping)
     t_comp, theta_ref = _median_time(
         functools.partial(_cvxpy_compressed, gram, eps, kind), 3 if args.table else 1)

@@ -297,9 +297,9 @@ def _scaled_upper(H, a, gam, dd, nv, shift, c):
     for i0 in range(0, n, T):
         for j0 in range(i0, n, T):
             for i in range(i0, min(i0 + T, n)):
-                bi = i // nv
+                end = (i // nv + 1) * nv  # j >= i is in i's diagonal block pair below this
                 for j in range(max(j0, i), min(j0 + T, n)):
-                    v = 0.5 * (H[i, j] + H[j, i]) if j // nv == bi else H[i, j]
+                    v = 0.5 * (H[i, j] + H[j, i]) if j < end else H[i, j]
                     c[i, j] = (v + gam * a[i] * a[j]) * (dd[i] * dd[j])
     for i in range(n):
         c[i, i] += shift
