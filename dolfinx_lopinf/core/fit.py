@@ -26,7 +26,10 @@ best is kept: a near-tie (which rounding or another BLAS could flip) is decided 
 never by the last bits, and a richer model must earn its place by a clear margin. A learned
 mass that is the identity up to a scale in every direction the data see is not a different
 model: it is replaced by Mh = I (the data cannot separate them; the structurally exact model
-extrapolates better). A named scheme whose relation residual is 3x another's gets a
+extrapolates better). A learned-mass candidate is scored as the final fit returns it: where
+its interior point stalls at the default ridge it is certified with the ridge raised
+(:func:`~dolfinx_lopinf.core.infer_mechanical`), and the chosen model's final fit starts at
+that ridge - a stalled fit's held-back error is not reproducible. A named scheme whose relation residual is 3x another's gets a
 :class:`~dolfinx_lopinf.errors.SchemeMismatchWarning` naming the better one. From r = 12 on
 the candidates are fitted on threads (the cores the process may use, shared among MPI ranks,
 or ``DOLFINX_LOPINF_FIT_THREADS``); each is computed as alone, so the result does not depend
@@ -247,14 +250,13 @@ def _stacked(parts):
 
 
 def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity", solver="auto",
-                  raise_ridge=False):
+                  raise_ridge=False, ridge_factor=1.0):
     """L-OpInf on the stacked relation data of several trajectories (``raise_ridge``: as in
-    :func:`~dolfinx_lopinf.core.infer_mechanical` - the final fit only; the candidates keep
-    their first fit)."""
+    :func:`~dolfinx_lopinf.core.infer_mechanical`, from ``ridge_factor``)."""
     Qk, Qc, Qm, Uf = _stacked([_relation_data(scheme, p) for p in pieces])
     return infer_mechanical(Qk, Qc if damping else None, Qm, Uf, damping=damping, eps=eps,
                             ridge=ridge, strict=strict, mass=mass, solver=solver,
-                            raise_ridge=raise_ridge)
+                            raise_ridge=raise_ridge, _ridge_factor=ridge_factor)
 
 
 def _relation_data(scheme, piece):
@@ -281,7 +283,8 @@ def _candidates(relations, masses, dampings):
 
 
 def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
-    """Held-back error of every candidate (module docstring)."""
+    """Held-back error of every candidate (module docstring), notes on the failed ones, and
+    the ridge factor each learned-mass candidate was certified with (where raised)."""
     try:
         fit_part, held = split(pieces, holdout)
     except InputError as exc:  # name only what is still being chosen
@@ -295,22 +298,27 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
 
     def evaluate(candidate):
         mass, damping, rel = candidate
-        try:  # Mh = I: the interior point without its slow fallbacks (lsq.Auto)
+        try:  # Mh = I: the interior point without its slow fallbacks (lsq.Auto); a learned
+            # mass scored as the final fit returns it - certified with the ridge raised where
+            # the first fit is not (an uncertified fit's held-back error is not reproducible)
             ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass,
-                                lsq.Auto(fallback=False) if mass == "identity" else "auto")
+                                lsq.Auto(fallback=False) if mass == "identity" else "auto",
+                                raise_ridge=mass == "learned")
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
-            return float("inf"), str(exc)[:200]  # a failed candidate loses
+            return float("inf"), str(exc)[:200], 1.0  # a failed candidate loses
         if mass == "learned" and _is_scaled_identity(ops.M, states):
-            return float("inf"), "learned Mh = c I: the same model as Mh = I"
-        return max(prediction_error(ops, schemes.rom_scheme(rel), h, dt, backend) for h in held), None
+            return float("inf"), "learned Mh = c I: the same model as Mh = I", 1.0
+        factor = float(f"{ops.certificate.get('ridge', ridge) / ridge:.6g}") if ridge > 0 else 1.0
+        return max(prediction_error(ops, schemes.rom_scheme(rel), h, dt, backend) for h in held), None, factor
 
     order = _candidates(relations, masses, dampings)
     with warnings.catch_warnings():  # the candidates' own warnings are not the user's
         warnings.simplefilter("ignore")
         results = _map(evaluate, order, states.shape[0], cost=_expected_cost)
-    errors = {c: e for c, (e, _) in zip(order, results)}
-    notes = {c: n for c, (_, n) in zip(order, results) if n is not None}
-    return errors, notes
+    errors = {c: e for c, (e, _, _) in zip(order, results)}
+    notes = {c: n for c, (_, n, _) in zip(order, results) if n is not None}
+    factors = {c: f for c, (_, _, f) in zip(order, results)}
+    return errors, notes, factors
 
 
 def _expected_cost(candidate) -> int:
@@ -450,7 +458,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     masses = _mass_candidates(mass)
     order = _candidates(relations, masses, dampings)
     if len(order) > 1:
-        errors, notes = _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt)
+        errors, notes, factors = _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt)
         # the most standard scheme (on loads that cannot tell the schemes apart) against the
         # other schemes: kept unless one predicts REFINEMENT_GAIN better; differences compete
         # with it as with any relation (MARGIN, after it in the order)
@@ -472,10 +480,13 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
                               f"unless another predicts {REFINEMENT_GAIN:g}x better (best other "
                               f"{others:.3g}): the loads do not show where the loop samples them")
     else:
-        chosen = order[0]
+        chosen, factors = order[0], {}
         report["why"] = "mass, damping and scheme given: nothing to compare"
     mass, damping, relation = chosen
-    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass, raise_ridge=True)
+    # the recipe that was scored: a learned mass certified with a raised ridge is refitted
+    # from that ridge on (a first fit at the default ridge would stall again, at a full fit's cost)
+    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass, raise_ridge=True,
+                        ridge_factor=factors.get(chosen, 1.0))
     E = None
     if trajs[0].Y is not None:
         E = infer_output(np.hstack([p[0] for p in pieces]), np.hstack([s.Y for s in trajs]))

@@ -96,7 +96,7 @@ def _check_solver(solver):
 def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool = True,
                      solver: str | lsq.Strategy = "auto", ridge: float = RIDGE,
                      strict: bool = False, mass: str = "identity",
-                     raise_ridge: bool = True) -> MechanicalOperators:
+                     raise_ridge: bool = True, _ridge_factor: float = 1.0) -> MechanicalOperators:
     """L-OpInf for Mh qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I and
     Mh = I (``mass="identity"``) or learned too (``mass="learned"``, :mod:`dolfinx_lopinf.core.mass`).
 
@@ -128,7 +128,9 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             the first certified one is returned, with a
             :class:`~dolfinx_lopinf.errors.SolverWarning` and ``certificate["ridge"]`` naming
             the ridge (its certificate is for that problem); when none certifies, the first
-            fit as it was. ``False``: the first fit only.
+            fit as it was. ``False``: the first fit only. (``_ridge_factor``, lo.fit's final
+            fit: start at ridge times this factor of RIDGE_STEPS - where the candidate it
+            scored was certified.)
 
     Returns:
         :class:`MechanicalOperators` with a certificate; warns if the solver did not reach
@@ -156,7 +158,8 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
                                    eps=eps, ridge=ridge_used, strict=strict, solver=solver)
 
         retry = raise_ridge and ridge == RIDGE and solver == "auto"
-        return _unscaled(_certified_by_ridge(fit, ridge) if retry else fit(ridge), c_state, c_input)
+        return _unscaled(_certified_by_ridge(fit, ridge, _ridge_factor) if retry else fit(ridge),
+                         c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
     conservative = not gram.has_damping and gram.m == 0
     named = solver if isinstance(solver, str) else None
@@ -182,25 +185,32 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
 #: a learned-mass fit left uncertified at the default ridge is tried again with the ridge raised
 #: by these factors (the directions the data barely determine are then fixed by the ridge
 #: instead of by rounding, and the interior point can close its gap); the first certified
-#: one is kept, with a warning naming the ridge
-RIDGE_STEPS = (10.0, 100.0, 1000.0)
+#: one is kept, with a warning naming the ridge. No 10x: the ridge's curvature in the Newton
+#: systems is (factor * RIDGE)^2 sigma_1^2 - 1e-16 sigma_1^2 at 10x, the rounding of those
+#: systems, where rounding decided whether it certified or stalled (at a full fit's cost);
+#: 100x puts it at 1e-14, two decades above
+RIDGE_STEPS = (100.0, 1000.0)
 
 
-def _certified_by_ridge(fit, ridge):
-    """``fit(ridge)``, and if not certified ``fit(ridge * f)`` for f in RIDGE_STEPS: the first
-    certified fit (warning, ``certificate["ridge"]``), else the first as it was (its warnings,
-    or its SolverFailedError under strict=True)."""
+def _certified_by_ridge(fit, ridge, first=1.0):
+    """``fit(ridge * first)``, and if not certified ``fit(ridge * f)`` for f in RIDGE_STEPS
+    above ``first``: the first certified fit (warning, ``certificate["ridge"]``), else the
+    first as it was (its warnings, or its SolverFailedError under strict=True)."""
     with warnings.catch_warnings(record=True) as first_warnings:
         warnings.simplefilter("always")
         try:
-            ops, failure = fit(ridge), None
+            ops, failure = fit(ridge * first), None
         except SolverFailedError as exc:  # strict=True and not certified
             ops, failure = None, exc
+    if ops is not None and first != 1.0:
+        ops.certificate["ridge"] = float(f"{ridge * first:.6g}")
     if ops is not None and ops.certificate.get("certified"):
         _replay(first_warnings)
+        if first != 1.0:
+            _warn_ridge(ridge, ridge * first, "the ridge lo.fit's chosen candidate needed")
         return ops
     gap = ops.certificate.get("duality_gap") if ops is not None else None
-    for factor in RIDGE_STEPS:
+    for factor in (f for f in RIDGE_STEPS if f > first):
         with warnings.catch_warnings(record=True) as trial_warnings:
             warnings.simplefilter("always")
             try:
@@ -210,16 +220,20 @@ def _certified_by_ridge(fit, ridge):
         if trial.certificate.get("certified"):
             _replay([w for w in trial_warnings if not issubclass(w.category, SolverWarning)])
             trial.certificate["ridge"] = float(f"{ridge * factor:.6g}")
-            warnings.warn(f"learned-mass fit: not certified with the ridge {ridge:g} * sigma_1 "
-                          f"(duality gap {gap if gap is not None else float('nan'):.2e}); certified "
-                          f"with {ridge * factor:g} * sigma_1 - the directions the data barely "
-                          "determine are fixed by the ridge (towards zero). Pass ridge= to choose "
-                          "it yourself", SolverWarning, stacklevel=4)
+            _warn_ridge(ridge, ridge * factor, f"not certified with {ridge * first:g} * sigma_1 "
+                        f"(duality gap {gap if gap is not None else float('nan'):.2e})")
             return trial
     if failure is not None:
         raise failure
     _replay(first_warnings)
     return ops
+
+
+def _warn_ridge(ridge, used, why):
+    warnings.warn(f"learned-mass fit: certified with the ridge {used:g} * sigma_1 instead of "
+                  f"{ridge:g} ({why}) - the directions the data barely determine are fixed by "
+                  "the ridge (towards zero). Pass ridge= to choose it yourself", SolverWarning,
+                  stacklevel=5)
 
 
 def _replay(records):
