@@ -9,7 +9,8 @@ community styles, an independent numpy reference of their schemes, and the study
 * the reference's generalised-alpha has the Chung-Hulbert high-frequency limit (the tour's
   alpha_m = 0.2, alpha_f = 0.4: rho_inf = 2/3); its average-acceleration Newmark conserves
   energy.
-* one end-to-end run of ``python -m dolfinx_lopinf.studies.loops`` at the quick size.
+* one end-to-end run of ``python -m dolfinx_lopinf.studies.loops`` at the quick size, with a
+  rounding copy of each recording (1e-15 apart: the same choice, errors within 1.5x).
 """
 
 import json
@@ -127,7 +128,8 @@ def test_study_end_to_end(tmp_path):
     from dolfinx_lopinf.studies.loops.__main__ import main
 
     names = ["newmark_nonlinear_problem", "membrane_central_difference"]
-    metrics = main(["--size", "quick", "--r", "2,4", "--loops", ",".join(names), "--out", str(tmp_path)])
+    metrics = main(["--size", "quick", "--r", "2,4", "--loops", ",".join(names), "--copies", "2",
+                    "--out", str(tmp_path)])
     on_disk = json.loads((tmp_path / "metrics.json").read_text())
     assert set(on_disk["loops"]) == set(names) == set(metrics["loops"])
     saved = Snapshots.load(tmp_path / "membrane_central_difference_free.npz")  # re-fit without the loop
@@ -142,6 +144,9 @@ def test_study_end_to_end(tmp_path):
             for style in res["styles"] + ["named"]:
                 fit = x["fits"][style]
                 assert "failure" not in fit and np.isfinite(fit["output"]), (name, style, fit)
+                if style != "named":  # a copy 1e-15 away chooses the same model, near the same error
+                    c = fit["copies"]
+                    assert c["agree"] and len(c["choices"]) == 2 and c["spread"] < 1.5, (name, style, c)
             # the intrusive ROM cannot beat the projection floor of its own basis
             assert x["intrusive_state"] >= x["floor_state"] * (1 - 1e-9)
     free = on_disk["loops"]["membrane_central_difference"]

@@ -1,5 +1,5 @@
 """python -m dolfinx_lopinf.studies.loops [--size quick|default] [--r 2,4,8] [--loops a,b]
-[--verify] [--out results/loops]
+[--verify] [--copies N] [--out results/loops]
 
 For each user loop: record training and test data with lo.SnapshotRecorder, fit lo.fit with
 today's defaults and print lo.fit's unseen-load error beside the intrusive ROM of the loop's
@@ -24,15 +24,20 @@ def main(argv=None):
     p.add_argument("--r", default="2,4,8")
     p.add_argument("--loops", default=",".join(study.LOOPS))
     p.add_argument("--verify", action="store_true", help="also check the reference at r = n")
+    p.add_argument("--copies", type=int, default=1,
+                   help="also fit N - 1 copies of each recording perturbed at 1e-15 (the choices "
+                        "and errors should agree)")
     p.add_argument("--out", default="results/loops")
     args = p.parse_args(argv)
     rs = tuple(int(x) for x in args.r.split(","))
+    if args.copies < 1:
+        p.error("--copies must be >= 1")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in args.loops.split(","):
         t0 = time.perf_counter()
-        res = study.run_loop(name, args.size, rs, save_to=out)
+        res = study.run_loop(name, args.size, rs, save_to=out, copies=args.copies)
         if args.verify:
             res["verify_r_eq_n"] = study.verify(study.load_loop(name), args.size)
         res["study_seconds"] = time.perf_counter() - t0

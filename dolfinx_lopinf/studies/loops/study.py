@@ -15,10 +15,16 @@ states. The membrane loop also runs a long free vibration (source off after 0.5 
 reports the drift of the central-difference energy
 E_{k+1/2} = 1/2 d_k^T M d_k + 1/2 q_k^T K q_{k+1}, d_k = (q_{k+1} - q_k)/dt (exactly
 conserved by the unforced loop) of the FOM and of both ROMs' reconstructed states.
+
+Rounding (``copies``): each recording is also fitted as ``copies - 1`` copies whose snapshots
+differ from it at 1e-15 (what another BLAS or rank layout does): the choices and test errors
+of the copies should agree, since a choice that rounding decides is a choice nobody can
+reproduce.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import time
 import warnings
@@ -115,6 +121,32 @@ def _fit(train, r, **kwargs):
     return model, seconds, sorted({f"{w.category.__name__}: {str(w.message)[:160]}" for w in caught})
 
 
+#: the relative size of the perturbation of a rounding copy (:func:`perturbed`)
+COPY_DELTA = 1e-15
+
+
+def perturbed(snaps, seed):
+    """A copy of ``snaps`` whose states are multiplied by 1 + COPY_DELTA N(0, 1) (seeded)."""
+    rng = np.random.default_rng(seed)
+    return dataclasses.replace(snaps, Q=snaps.Q * (1.0 + COPY_DELTA * rng.standard_normal(snaps.Q.shape)))
+
+
+def _copies(train, test, r, copies, n_test, load, first):
+    """The rounding copies of one fit: their choices (mass/damping/scheme) and output errors,
+    the unperturbed fit (``first``, a _scored dict) included."""
+    rows = [first]
+    for seed in range(1, copies):
+        try:
+            rows.append(_scored(*_fit(perturbed(train, seed), r), test, n_test, load))
+        except Exception as exc:  # noqa: BLE001 - a failing copy is a disagreement, recorded
+            rows.append({"failure": f"{type(exc).__name__}: {exc}"[:200]})
+    choices = [None if "failure" in x else f"{x['mass']}/{x['damping']}/{x['scheme']}" for x in rows]
+    errors = [x.get("output") for x in rows]
+    ok = [e for e in errors if e is not None]
+    return {"choices": choices, "outputs": errors, "agree": len(set(choices)) == 1 and None not in choices,
+            "spread": (max(ok) / max(min(ok), 1e-300)) if ok else None}
+
+
 def _scored(model, seconds, warns, test, n_test, load):
     """A fitted model's row entries on the unseen load (predicted from rest with the load as a
     callable: the ROM evaluates it where its scheme does)."""
@@ -139,7 +171,7 @@ def leapfrog_energy(Q, M, K, dt):
     return 0.5 * np.einsum("ik,ik->k", D, M @ D) + 0.5 * np.einsum("ik,ik->k", Q[:, :-1], K @ Q[:, 1:])
 
 
-def run_loop(name, size="default", rs=(2, 4, 8), save_to=None, peer=True):
+def run_loop(name, size="default", rs=(2, 4, 8), save_to=None, peer=True, copies=1):
     """Everything the table shows for one loop (a plain dict for metrics.json); with ``save_to``,
     the recorded Snapshots are saved there too (``{name}_{style}_{train,test}.npz``, to re-fit
     without running the loop: ``lo.Snapshots.load``).
@@ -147,7 +179,8 @@ def run_loop(name, size="default", rs=(2, 4, 8), save_to=None, peer=True):
     Rows per r (unseen test load, predicted from rest): ``lo.fit`` defaults on each recording
     style (:data:`STYLES`), ``lo.fit(scheme=<the loop's scheme>)`` on the "applied" recording,
     the intrusive ROM of the loop's scheme and the projection floor in the defaults' basis,
-    and opinf's first-order model (the peer) where installed."""
+    and opinf's first-order model (the peer) where installed; with ``copies`` > 1 the
+    defaults' fits also on rounding copies of each recording (module docstring)."""
     loop = load_loop(name)
     pre = loop.SIZES[size]
     data = {}
@@ -190,6 +223,9 @@ def run_loop(name, size="default", rs=(2, 4, 8), save_to=None, peer=True):
             try:
                 model, fit_s, warns = _fit(data[style][0], r, **kwargs)
                 row["fits"][key] = _scored(model, fit_s, warns, data[style][1], n_test, loop.test_load)
+                if copies > 1 and not kwargs:
+                    row["fits"][key]["copies"] = _copies(data[style][0], data[style][1], r, copies,
+                                                         n_test, loop.test_load, row["fits"][key])
                 if key == "applied":
                     W, default_model = model.basis.V, model
             except Exception as exc:  # record the failure, keep going
@@ -288,6 +324,15 @@ def table(result) -> str:
                      f"{_fmt(op) if not isinstance(op, str) else 'failed':>10}  "
                      f"{_fmt(ap.get('fit_seconds')):>14}  {ap.get('mass', '-')}/"
                      f"{'damped' if ap.get('damping') else 'undamped'}/{ap.get('scheme', '-')}")
+    copies = [(x["r"], k, f["copies"]) for x in result["rows"] for k, f in x["fits"].items() if "copies" in f]
+    if copies:
+        n = len(copies[0][2]["choices"])
+        split = [f"r = {r} {k}: {' '.join(sorted(set(map(str, c['choices']))))}" for r, k, c in copies if not c["agree"]]
+        spread = max((c["spread"] for _, _, c in copies if c["spread"] is not None), default=float("nan"))
+        lines.append(f"  rounding copies ({n} per fit, {COPY_DELTA:g} apart): the choice agrees in "
+                     f"{sum(c['agree'] for _, _, c in copies)} of {len(copies)} fits"
+                     + (f" (differs: {'; '.join(split)})" if split else "")
+                     + f"; output errors within {spread:.2f}x")
     if "free_run" in result:
         fr = result["free_run"]
         lines.append(f"  free run to t = {fr['t_free']:g} ({fr['steps']} steps), energy drift after the "
