@@ -47,6 +47,7 @@ def test_benchmark_mass_and_poly_tables(tmp_path, capsys):
     for row in saved["mass_rows"]:
         assert row["certified"] and row["gap"] <= 1e-8
         assert row["phi_difference"] >= -1e-8  # Clarabel's answer is not better than ours
+        assert row["default_certified"] and row["default_ms"] > 0  # the user's call, the same data
     (poly,) = saved["poly_rows"]
     assert abs(poly["ipm"]["relative_residual"] - poly["cvxpy"]["relative_residual"]) \
         <= 1e-2 * poly["cvxpy"]["relative_residual"]
