@@ -220,8 +220,8 @@ def _certified_by_ridge(fit, ridge, first=1.0):
         if trial.certificate.get("certified"):
             _replay([w for w in trial_warnings if not issubclass(w.category, SolverWarning)])
             trial.certificate["ridge"] = float(f"{ridge * factor:.6g}")
-            _warn_ridge(ridge, ridge * factor, f"not certified with {ridge * first:g} * sigma_1 "
-                        f"(duality gap {gap if gap is not None else float('nan'):.2e})")
+            _warn_ridge(ridge, ridge * factor, f"not certified at {ridge * first:g}: duality gap "
+                        f"{gap if gap is not None else float('nan'):.2e}")
             return trial
     if failure is not None:
         raise failure
