@@ -29,8 +29,9 @@ model: it is replaced by Mh = I (the data cannot separate them; the structurally
 extrapolates better). A learned-mass candidate is scored as the final fit returns it: where
 its interior point stalls at the default ridge it is certified with the ridge raised
 (:func:`~dolfinx_lopinf.core.infer_mechanical`), and the chosen model's final fit starts at
-that ridge - a stalled fit's held-back error is not reproducible. A named scheme whose relation residual is 3x another's gets a
-:class:`~dolfinx_lopinf.errors.SchemeMismatchWarning` naming the better one. From r = 12 on
+that ridge - a stalled fit's held-back error is not reproducible. A named scheme whose
+relation residual is 3x another's gets a :class:`~dolfinx_lopinf.errors.SchemeMismatchWarning`
+naming the better one. From r = 12 on
 the candidates are fitted on threads (the cores the process may use, shared among MPI ranks,
 or ``DOLFINX_LOPINF_FIT_THREADS``); each is computed as alone, so the result does not depend
 on the thread count.
