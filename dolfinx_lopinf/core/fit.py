@@ -309,7 +309,7 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
             return float("inf"), str(exc)[:200], 1.0  # a failed candidate loses
         if mass == "learned" and _is_scaled_identity(ops.M, states):
             return float("inf"), "learned Mh = c I: the same model as Mh = I", 1.0
-        factor = float(f"{ops.certificate.get('ridge', ridge) / ridge:.6g}") if ridge > 0 else 1.0
+        factor = float(f"{ops.certificate.get('ridge', RIDGE) / RIDGE:.6g}") if ridge is None else 1.0
         return max(prediction_error(ops, schemes.rom_scheme(rel), h, dt, backend) for h in held), None, factor
 
     order = _candidates(relations, masses, dampings)
@@ -391,7 +391,7 @@ def _label(mass, damping, rel):
 
 @serial_blas  # small kernels: BLAS threads cost more than they give, and far more on a busy machine
 def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
-        basis: Basis | None = None, eps: float = 1e-8, ridge: float = RIDGE,
+        basis: Basis | None = None, eps: float = 1e-8, ridge: float | None = None,
         strict: bool = False, holdout: float = 0.25) -> ReducedModel:
     """Fit an L-OpInf reduced model to one or several recorded trajectories.
 

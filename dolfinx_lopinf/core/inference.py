@@ -94,7 +94,7 @@ def _check_solver(solver):
 
 @serial_blas
 def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool = True,
-                     solver: str | lsq.Strategy = "auto", ridge: float = RIDGE,
+                     solver: str | lsq.Strategy = "auto", ridge: float | None = None,
                      strict: bool = False, mass: str = "identity",
                      raise_ridge: bool = True, _ridge_factor: float = 1.0) -> MechanicalOperators:
     """L-OpInf for Mh qh_tt + Ch qh_t + Kh qh = Bh u with Kh, Ch symmetric, >= eps I and
@@ -114,7 +114,9 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             strategy object whose ``solve(problem)`` returns ``(Theta, Certificate)`` for
             a :class:`~dolfinx_lopinf.core.lsq.Problem` (e.g. ``lsq.PSDBlocks(gap_tol=1e-10)``).
         ridge: relative Tikhonov parameter that decides the directions the data do not
-            determine (see :func:`gram_data`); 0 turns it off.
+            determine (see :func:`gram_data`); 0 turns it off. None (default): ``RIDGE``,
+            raised for a learned mass that it leaves uncertified (``raise_ridge``); a number:
+            that ridge and no other.
         strict: raise :class:`~dolfinx_lopinf.errors.RankDeficientDataError` when the data
             do not determine every operator entry, instead of warning and regularising, and
             :class:`~dolfinx_lopinf.errors.SolverFailedError` when the fit is not certified
@@ -123,7 +125,7 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             (Mh symmetric positive definite, fitted with the others by a convex problem
             whose answer does not depend on the coordinates of the reduced space - use it
             in a Euclidean, black-box basis).
-        raise_ridge: ``mass="learned"`` at the default ridge only: a fit the interior point
+        raise_ridge: ``mass="learned"`` with ``ridge=None`` only: a fit the interior point
             leaves uncertified is refitted with the ridge raised by :data:`RIDGE_STEPS` and
             the first certified one is returned, with a
             :class:`~dolfinx_lopinf.errors.SolverWarning` and ``certificate["ridge"]`` naming
@@ -149,6 +151,7 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
         raise InputError(f"eps must be a finite number >= 0, got {eps}")
     if mass not in ("identity", "learned"):
         raise InputError(f"mass must be 'identity' or 'learned', got {mass!r}")
+    chosen_ridge, ridge = ridge is not None, _check_ridge(ridge)
     (Qh, dQh, ddQh, U), c_state, c_input = _unit_scaled(Qh, dQh, ddQh, U)
     if mass == "learned":
         def fit(ridge_used):
@@ -157,7 +160,7 @@ def infer_mechanical(Qh, dQh, ddQh, U=None, *, eps: float = 1e-8, damping: bool 
             return infer_with_mass(Qh, dQh if damping else None, ddQh, U, damping=damping,
                                    eps=eps, ridge=ridge_used, strict=strict, solver=solver)
 
-        retry = raise_ridge and ridge == RIDGE and solver == "auto"
+        retry = raise_ridge and not chosen_ridge and solver == "auto"
         return _unscaled(_certified_by_ridge(fit, ridge, _ridge_factor) if retry else fit(ridge),
                          c_state, c_input)
     gram = gram_data(Qh, dQh, ddQh, U, damping=damping, ridge=ridge, strict=strict)
@@ -227,6 +230,16 @@ def _certified_by_ridge(fit, ridge, first=1.0):
         raise failure
     _replay(first_warnings)
     return ops
+
+
+def _check_ridge(ridge) -> float:
+    """The ridge to use: ``RIDGE`` for None, else a number in [0, 1) (as :func:`gram_data`)."""
+    if ridge is None:
+        return RIDGE
+    if isinstance(ridge, bool) or not isinstance(ridge, (int, float, np.floating, np.integer)) \
+            or not (np.isfinite(ridge) and 0 <= ridge < 1):
+        raise InputError(f"ridge must be a number in [0, 1) (or None for the default), got {ridge!r}")
+    return float(ridge)
 
 
 def _warn_ridge(ridge, used, why):

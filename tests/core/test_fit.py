@@ -197,8 +197,8 @@ def test_an_uncertified_learned_mass_fit_is_refitted_with_a_larger_ridge(monkeyp
     """infer_mechanical(mass="learned") - lo.fit's final fit and a user's call alike: uncertified
     at the default ridge -> the ridge raised 100x, 1000x until certified; that fit is
     returned, its certificate names the ridge and a SolverWarning says so. None certified: the
-    first fit and its own warnings (strict: its SolverFailedError). A user's ridge,
-    raise_ridge=False and Mh = I are never refitted. lo.fit's final fit starts at the factor
+    first fit and its own warnings (strict: its SolverFailedError). A ridge the user passes
+    (even the default's value), raise_ridge=False and Mh = I are never refitted. lo.fit's final fit starts at the factor
     its chosen candidate was certified with (_ridge_factor)."""
     import importlib
 
@@ -254,8 +254,12 @@ def test_an_uncertified_learned_mass_fit_is_refitted_with_a_larger_ridge(monkeyp
     calls.clear()
     with pytest.warns(SolverWarning):
         fit(ridge=1e-7)  # the user's ridge
+        fit(ridge=ridge0)  # the default's value, but chosen: the warning's "pass ridge=" holds
         fit(raise_ridge=False)
-    assert calls == [1e-7, ridge0]
+    assert calls == [1e-7, ridge0, ridge0]
+    for bad in (-1e-9, 1.0, float("nan"), "1e-9", True):
+        with pytest.raises(lo.errors.InputError, match="ridge must be a number in"):
+            fit(ridge=bad)
 
 
 def test_fit_on_large_data_uses_the_leading_modes_and_refuses_r_above_the_rank(monkeypatch):
