@@ -251,13 +251,14 @@ def _stacked(parts):
 
 
 def _fit_relation(scheme, pieces, damping, eps, ridge, strict, mass="identity", solver="auto",
-                  raise_ridge=False, ridge_factor=1.0):
-    """L-OpInf on the stacked relation data of several trajectories (``raise_ridge``: as in
-    :func:`~dolfinx_lopinf.core.infer_mechanical`, from ``ridge_factor``)."""
+                  ridge_factor=1.0):
+    """L-OpInf on the stacked relation data of several trajectories; a learned mass left
+    uncertified at the default ridge raises it, from ``ridge_factor`` on (``raise_ridge`` of
+    :func:`~dolfinx_lopinf.core.infer_mechanical`: candidates and final fit alike)."""
     Qk, Qc, Qm, Uf = _stacked([_relation_data(scheme, p) for p in pieces])
     return infer_mechanical(Qk, Qc if damping else None, Qm, Uf, damping=damping, eps=eps,
                             ridge=ridge, strict=strict, mass=mass, solver=solver,
-                            raise_ridge=raise_ridge, _ridge_factor=ridge_factor)
+                            _ridge_factor=ridge_factor)
 
 
 def _relation_data(scheme, piece):
@@ -303,8 +304,7 @@ def _compare(pieces, relations, masses, dampings, eps, ridge, holdout, dt):
             # mass scored as the final fit returns it - certified with the ridge raised where
             # the first fit is not (an uncertified fit's held-back error is not reproducible)
             ops = _fit_relation(rel, fit_part, damping, eps, ridge, False, mass,
-                                lsq.Auto(fallback=False) if mass == "identity" else "auto",
-                                raise_ridge=mass == "learned")
+                                lsq.Auto(fallback=False) if mass == "identity" else "auto")
         except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             return float("inf"), str(exc)[:200], 1.0  # a failed candidate loses
         if mass == "learned" and _is_scaled_identity(ops.M, states):
@@ -486,7 +486,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     mass, damping, relation = chosen
     # the recipe that was scored: a learned mass certified with a raised ridge is refitted
     # from that ridge on (a first fit at the default ridge would stall again, at a full fit's cost)
-    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass, raise_ridge=True,
+    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass,
                         ridge_factor=factors.get(chosen, 1.0))
     E = None
     if trajs[0].Y is not None:
