@@ -194,12 +194,13 @@ def test_learned_mass_candidates_are_scored_as_the_fit_returns_them():
 
 
 def test_an_uncertified_learned_mass_fit_is_refitted_with_a_larger_ridge(monkeypatch):
-    """infer_mechanical(mass="learned") - lo.fit's final fit and a user's call alike: uncertified
-    at the default ridge -> the ridge raised 100x, 1000x until certified; that fit is
-    returned, its certificate names the ridge and a SolverWarning says so. None certified: the
-    first fit and its own warnings (strict: its SolverFailedError). A ridge the user passes
-    (even the default's value), raise_ridge=False and Mh = I are never refitted. lo.fit's final fit starts at the factor
-    its chosen candidate was certified with (_ridge_factor)."""
+    """infer_mechanical(mass="learned") - lo.fit's candidates and final fit and a user's call
+    alike: uncertified at the default ridge -> the ridge raised 100x, 1000x until certified;
+    that fit is returned, its certificate names the ridge and a SolverWarning says so. None
+    certified: the first fit and its own warnings (strict: its SolverFailedError). A ridge the
+    user passes (even the default's value), raise_ridge=False and Mh = I are never refitted.
+    lo.fit's final fit starts at the factor its chosen candidate was certified with
+    (_ridge_factor)."""
     import importlib
 
     from dolfinx_lopinf.core import mass as mass_module
