@@ -136,9 +136,11 @@ def output_matrix_in_state(V, E_local: np.ndarray, state_map: StateMap) -> np.nd
 def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> np.ndarray:
     """(p, n_local) matrix E with y = sum over ranks of E @ u.x.array (owned + ghost dofs):
     the values at ``points`` (p, 3) of an FE function (one ``component`` of a vector field).
-    Each point is handled by one rank.
+    Each point is handled by one rank. In a mixed space ``component`` counts through the
+    sub-spaces' values in order (the mixed element's value: (w, theta) -> 0 is w, 1 is theta).
 
-    Built from ``Function.eval`` on unit dof vectors, so it is exact for any element.
+    Built from ``Function.eval`` on unit dof vectors (a mixed space's through its collapsed
+    sub-space), so it is exact for any element.
     """
     if not isinstance(V, dolfinx.fem.FunctionSpace):
         raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
@@ -160,6 +162,8 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
             if not 0 <= comp < value_size:
                 problem = f"component must be in 0..{value_size - 1}, got {component}"
     agree(comm, "point_output_matrix", problem, points=points, component=comp)
+    if getattr(V.ufl_element(), "is_mixed", False):
+        return _mixed_point_output_matrix(V, points, comp)
     tree = dolfinx.geometry.bb_tree(msh, msh.topology.dim)
     candidates = dolfinx.geometry.compute_collisions_points(tree, points)
     colliding = dolfinx.geometry.compute_colliding_cells(msh, candidates, points)
@@ -167,8 +171,9 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
     E = np.zeros((len(points), n_local))
     n_owned_cells = msh.topology.index_map(msh.topology.dim).size_local
     found = np.array([comm.rank if len(colliding.links(i)) and colliding.links(i)[0] < n_owned_cells
-                      else comm.size for i in range(len(points))])
-    owner = comm.allreduce(found, op=MPI.MIN)
+                      else comm.size for i in range(len(points))], dtype=np.int64)
+    owner = np.empty_like(found)
+    comm.Allreduce(found, owner, op=MPI.MIN)  # each point to the lowest rank owning its cell
     if np.any(owner == comm.size):
         raise InputError(f"points {points[owner == comm.size].tolist()} lie outside the mesh "
                          "(or on no owned cell of any rank): move them inside")
@@ -184,6 +189,24 @@ def point_output_matrix(V, points: np.ndarray, component: int | None = None) -> 
                 probe.x.array[dof] = 1.0
                 E[i, dof] = probe.eval(point, np.array([cell], dtype=np.int32))[comp]
     return E
+
+
+def _mixed_point_output_matrix(V, points, comp: int) -> np.ndarray:
+    """:func:`point_output_matrix` of a mixed space (``Function.eval`` does not evaluate mixed
+    elements): flat component ``comp`` of the mixed value lies in one sub-space; its matrix
+    on the collapsed sub-space, scattered into V's dofs (``collapse()``'s map)."""
+    for s in range(V.element.num_sub_elements):
+        sub = V.sub(s)
+        size = int(np.prod(sub.value_shape)) if len(sub.value_shape) else 1
+        if comp < size:
+            W, parent = sub.collapse()
+            E_sub = point_output_matrix(W, points, component=comp if size > 1 else None)
+            bs = V.dofmap.index_map_bs
+            E = np.zeros((len(points), (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) * bs))
+            E[:, np.ravel(np.asarray(parent, dtype=np.int64))] = E_sub
+            return E
+        comp -= size
+    raise AssertionError("component checked against the value size")  # pragma: no cover
 
 
 def _points(points, gdim: int):

@@ -23,7 +23,8 @@ ml.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
 q, q_old = dolfinx.fem.Function(V), dolfinx.fem.Function(V)
 q.interpolate(lambda x: np.exp(-40 * ((x[0] - 0.4) ** 2 + (x[1] - 0.6) ** 2)))
 q_old.x.array[:] = q.x.array
-E = lo.point_output_matrix(V, np.array([[0.5, 0.5, 0.0]]))
+# several points, on different ranks under 2 (one point at a time had hidden a crash)
+E = lo.point_output_matrix(V, np.array([[0.5, 0.5, 0.0], [0.1, 0.2, 0.0], [0.9, 0.85, 0.0]]))
 rec = lo.SnapshotRecorder(q, output_matrix=E, order="coordinates")  # identical on any ranks
 by_dofs = lo.SnapshotRecorder(q)  # rows = global dof numbers (differ between 1 and 2 ranks)
 dt, kq = 0.01, q.x.petsc_vec.duplicate()

@@ -30,7 +30,7 @@ def test_recorder_two_ranks_equals_serial(serial_and_parallel):
     """A user's own dolfinx loop recorded on 1 and 2 ranks gives identical snapshot arrays with
     order="coordinates", and the same rows up to the ranks' dof numbering by default."""
     a, b = serial_and_parallel(Path(__file__).with_name("mpi_recorder.py"))
-    assert a["Q"].shape == (143, 40)
+    assert a["Q"].shape == (143, 40) and a["Y"].shape == (3, 40)  # three output points
     for key in ("Q", "U", "Y", "t"):
         assert np.abs(a[key] - b[key]).max() <= 1e-12 * max(np.abs(a[key]).max(), 1.0), key
     # default rows: global dof numbers; sorted by their coordinates they agree too

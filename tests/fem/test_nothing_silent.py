@@ -318,3 +318,30 @@ def test_point_output_matrix_takes_points_of_the_mesh_dimension(square):
             point_output_matrix(V, points)
     with pytest.raises(InputError, match="component must be an integer"):
         point_output_matrix(V, [[0.5, 0.5]], component=0.5)
+
+
+def test_point_output_matrix_on_a_mixed_space():
+    """A mixed (Taylor-Hood-like) space: Function.eval does not evaluate mixed elements (it
+    raised a raw RuntimeError); each flat component is read from its collapsed sub-space, equal
+    to evaluating that sub-function."""
+    import basix.ufl
+
+    msh = dolfinx.mesh.create_unit_square(MPI.COMM_WORLD, 5, 4)
+    P2 = basix.ufl.element("Lagrange", msh.basix_cell(), 2, shape=(2,))
+    P1 = basix.ufl.element("Lagrange", msh.basix_cell(), 1)
+    V = dolfinx.fem.functionspace(msh, basix.ufl.mixed_element([P2, P1]))
+    u = dolfinx.fem.Function(V)
+    u.sub(0).interpolate(lambda x: np.vstack([x[0] ** 2 + x[1], np.sin(3 * x[0]) * x[1]]))
+    u.sub(1).interpolate(lambda x: 1 + x[0] * x[1])
+    points = np.array([[0.31, 0.47, 0.0], [0.9, 0.13, 0.0]])
+    tree = dolfinx.geometry.bb_tree(msh, 2)
+    cells = dolfinx.geometry.compute_colliding_cells(
+        msh, dolfinx.geometry.compute_collisions_points(tree, points), points)
+    subs = [u.sub(0).collapse(), u.sub(1).collapse()]
+    for comp, (sub, k) in enumerate([(0, 0), (0, 1), (1, 0)]):
+        E = point_output_matrix(V, points, component=comp)
+        expected = [subs[sub].eval(pt, np.array([cells.links(i)[0]], dtype=np.int32))[k]
+                    for i, pt in enumerate(points)]
+        np.testing.assert_allclose(E @ u.x.array, expected, rtol=1e-13, atol=1e-14)
+    with pytest.raises(InputError, match="3 components"):
+        point_output_matrix(V, points)
