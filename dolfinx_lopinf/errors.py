@@ -104,6 +104,14 @@ class SchemeMismatchWarning(LOpInfWarning):
     message names the better one."""
 
 
+class PoorPredictionWarning(LOpInfWarning):
+    """The model lo.fit chose predicts the held-back end of its own training data poorly: the
+    choice between the candidates, and the accuracy on new loads, are in doubt. The message
+    gives the error and the usual causes (r too small, snapshots that are not consecutive
+    steps, loads recorded at other times than applied or that are not forces, a record too
+    short for its first part to determine the operators)."""
+
+
 class InputCorrectedWarning(LOpInfWarning):
     """An input was made consistent rather than refused (e.g. an initial state moved onto its
     Dirichlet conditions); the message says what changed and by how much."""

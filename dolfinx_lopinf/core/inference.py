@@ -43,7 +43,7 @@ from . import lsq
 from ._blas import serial_blas
 from ._checks import check_matrix, pow2_scale
 from .conic import clarabel
-from ..errors import InputError, SolverFailedError, SolverWarning
+from ..errors import InputError, SolverFailedError, SolverWarning, warn
 from .gram import GAP_TOL, RIDGE, GramData, MechanicalOperators, compress, gram_data, psd_floor
 
 
@@ -243,10 +243,9 @@ def _check_ridge(ridge) -> float:
 
 
 def _warn_ridge(ridge, used, why):
-    warnings.warn(f"learned-mass fit: certified with the ridge {used:g} * sigma_1 instead of "
-                  f"{ridge:g} ({why}) - the directions the data barely determine are fixed by "
-                  "the ridge (towards zero). Pass ridge= to choose it yourself", SolverWarning,
-                  stacklevel=5)
+    warn(f"learned-mass fit: certified with the ridge {used:g} * sigma_1 instead of "
+         f"{ridge:g} ({why}) - the directions the data barely determine are fixed by "
+         "the ridge (towards zero). Pass ridge= to choose it yourself", SolverWarning)
 
 
 def _replay(records):
@@ -324,9 +323,8 @@ def _solve_constrained(gram: GramData, eps: float, strategy) -> MechanicalOperat
     cert["certified"] = bool(solved.converged and gap is not None
                              and gap <= getattr(strategy, "gap_tol", GAP_TOL))
     if not solved.converged:
-        warnings.warn(f"{solved.solver} stopped after {solved.iterations} iterations without "
-                      "meeting its tolerance; see the certificate's KKT residuals", SolverWarning,
-                      stacklevel=3)
+        warn(f"{solved.solver} stopped after {solved.iterations} iterations without "
+             "meeting its tolerance; see the certificate's KKT residuals", SolverWarning)
     return MechanicalOperators(K, C, B, cert)
 
 
@@ -366,8 +364,7 @@ def _solve_cvxpy(gram: GramData, eps: float) -> MechanicalOperators:
     cert.update(duality_gap=raw["relative_gap"], iterations=raw["iterations"],
                 certified=bool(prob.status == "optimal" and raw["relative_gap"] <= GAP_TOL))
     if prob.status != "optimal":
-        warnings.warn(f"Clarabel returned {prob.status}; check the certificate", SolverWarning,
-                      stacklevel=2)
+        warn(f"Clarabel returned {prob.status}; check the certificate", SolverWarning)
     return MechanicalOperators(Kv, Cv, Bv, cert)
 
 

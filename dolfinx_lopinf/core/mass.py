@@ -112,7 +112,7 @@ def infer_with_mass(Qh, dQh, ddQh, U=None, *, damping: bool = True, eps: float =
                f" ({cert['solver']}, {cert.get('stopped', cert['status'])})")
         if strict:
             raise SolverFailedError(msg)
-        warnings.warn(msg + "; check the model's held-back error", SolverWarning, stacklevel=3)
+        warn(msg + "; check the model's held-back error", SolverWarning)
     c = float(np.sum(M * prep.W_user))  # normalise tr(M W) = 1 in the user's coordinates
     return MechanicalOperators(K / c, None if C is None else C / c, None if B is None else B / c, cert,
                                M=M / c)
@@ -324,6 +324,6 @@ def solve_cvxpy(problem: FractionalProblem, tau: float | None = None, rounds: in
             "iterations": its, "solve_seconds": time.perf_counter() - t0, "tau": tau,
             "duality_gap": raw["relative_gap"]}
     if prob.status != "optimal":
-        warnings.warn(f"learned-mass fit: Clarabel returned {prob.status}", SolverWarning, stacklevel=3)
+        warn(f"learned-mass fit: Clarabel returned {prob.status}", SolverWarning)
     return out, info
 

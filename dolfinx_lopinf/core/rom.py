@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import json
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -47,7 +46,7 @@ import numpy as np
 from ._checks import (as_real_array, check_finite, check_int, check_matrix, check_positive,
                       check_square, check_vector)
 from . import compiled, schemes
-from ..errors import FileFormatError, InputError, NonLagrangianWarning, StepFailedError
+from ..errors import FileFormatError, InputError, NonLagrangianWarning, StepFailedError, warn
 from .io_atomic import atomic_savez, open_npz
 
 #: Steps whose forcing is formed at once (memory 2 r x _CHUNK floats, whatever n_steps is).
@@ -212,7 +211,7 @@ class LagrangianROM:
                        "OpInf), lagrangian=True to make this an error.")
                 if self.lagrangian:
                     raise InputError(msg)
-                warnings.warn(msg, NonLagrangianWarning, stacklevel=3)
+                warn(msg, NonLagrangianWarning)
 
     @property
     def r(self) -> int:

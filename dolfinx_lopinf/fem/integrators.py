@@ -31,13 +31,12 @@ one) and are removed once the solver has read them, as DOLFINx's ``LinearProblem
 from __future__ import annotations
 
 import itertools
-import warnings
 from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from ._dolfinx import MPI, PETSc, dolfinx
-from ..errors import InputCorrectedWarning, InputError, StepFailedError
+from ..errors import InputCorrectedWarning, InputError, StepFailedError, warn
 from .agreement import agree, check
 from .lagrangian import LagrangianSystem, _on_space
 from . import linsolve
@@ -393,10 +392,10 @@ class MidpointIntegrator(_Closing):
                         self._bc_dofs_owned_mask & (target.x.array[dofs] != 0)), op=MPI.SUM))
                     target.x.array[dofs] = 0.0
                     if off > 1e-13 * scale:
-                        warnings.warn(
+                        warn(
                             f"{name} violates the Dirichlet conditions by up to {off:.3g} "
                             f"(max |{name}| = {scale:.3g}) at {n_bc} dofs; it was set to the bc "
-                            "value 0 there before the run", InputCorrectedWarning, stacklevel=3)
+                            "value 0 there before the run", InputCorrectedWarning)
         self.q.x.array[:] = sysm.q.x.array
         self._assemble(self._momentum_at, self.p)
         self._zero_bc_rows(self.p)

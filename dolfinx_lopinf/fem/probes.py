@@ -46,14 +46,13 @@ from __future__ import annotations
 
 import gc
 import time
-import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..core import polynomial as pl
 from ..core._checks import check_int, check_positive
-from ..errors import InputError, LOpInfWarning, StepFailedError
+from ..errors import InputError, LOpInfWarning, StepFailedError, warn
 from ._dolfinx import MPI, PETSc
 from .agreement import agree, together
 from .state import StateMap, _map_key
@@ -268,9 +267,9 @@ def _probe(black_box, state_map, set_input, petsc_options, *, V, Q, Vel, U, step
     if search:
         h, best = min(search, key=lambda he: he[1])
         if best > step_tol:
-            warnings.warn(f"probe step: the Richardson estimate reached only {best:.1e} (asked "
-                          f"{step_tol:.1e}) at h = {h:.3g} after {len(search)} tries {search}; the "
-                          "data are no more accurate than that", LOpInfWarning, stacklevel=4)
+            warn(f"probe step: the Richardson estimate reached only {best:.1e} (asked "
+                 f"{step_tol:.1e}) at h = {h:.3g} after {len(search)} tries {search}; the "
+                 "data are no more accurate than that", LOpInfWarning)
     A, est = _probe_at(black_box, h, levels, petsc_options, V, state_map, Q, Vel, U, set_input)
     steps = levels * (Q.shape[1] + len(search) * len(pilot))
     return ProbeData(Q, Vel, U, A, est, h, levels, steps, time.perf_counter() - t0, search)

@@ -41,6 +41,7 @@ from ..errors import InputError
 from .agreement import agree, arrive
 from .state import StateMap, gather_states
 from .lagrangian import _on_space
+from ..core._checks import check_blocks
 from ..core.snapshots import Snapshots, check_scheme
 
 ORDERS = ("dofs", "coordinates")
@@ -107,7 +108,13 @@ class SnapshotRecorder:
             except ValueError as exc:
                 raise InputError(f"order='coordinates': {exc}") from None
         self.state_map = state_map
-        if blocks:
+        if blocks:  # checked now, not first when the run is over (rec.snapshots())
+            problem = None
+            try:
+                blocks = check_blocks(blocks, V.dofmap.index_map.size_global * V.dofmap.index_map_bs)
+            except InputError as exc:
+                problem = f"SnapshotRecorder: {exc}"
+            _verdict(comm, problem)
             self.state_map = StateMap(self.state_map.order, self.state_map.scale, blocks)
         self._n_owned = V.dofmap.index_map.size_local * V.dofmap.index_map_bs
         self._n_local = (V.dofmap.index_map.size_local + V.dofmap.index_map.num_ghosts) \

@@ -280,3 +280,35 @@ def test_fit_on_large_data_uses_the_leading_modes_and_refuses_r_above_the_rank(m
     with pytest.raises(lo.errors.InputError, match="numerical rank 10"):
         lo.fit(snaps, 12)
     assert used == [max(12, F.ID_MAX_R) + F.LEADING_EXTRA]
+
+
+def test_a_chosen_model_that_cannot_predict_its_own_data_is_flagged():
+    """lo.fit warns (PoorPredictionWarning) when the chosen model's held-back error exceeds
+    HELD_BACK_WARN: a loop recorded every third step obeys no relation with symmetric reduced
+    operators, and without the warning lo.fit returned a model 10% off on its own data with
+    no sign (a user's implicit loop: 0.24 on an unseen load). The same loop recorded every
+    step fits to 1e-4 and is not flagged. Data: a damped bar (synthetic._bar), Newmark,
+    under a piecewise-constant random load."""
+    import importlib
+
+    from dolfinx_lopinf.core import synthetic
+    from dolfinx_lopinf.core.rom import LagrangianROM
+    from dolfinx_lopinf.errors import PoorPredictionWarning
+
+    threshold = importlib.import_module("dolfinx_lopinf.core.fit").HELD_BACK_WARN
+    M, K, C, B = synthetic._bar(60)
+    dt, n = 0.05, 900
+    U = np.random.default_rng(0).standard_normal(n // 15 + 2)[np.arange(n + 1) // 15][None, :]
+    rom = LagrangianROM(K=K, M=M, C=C, B=B, scheme="newmark", lagrangian=False)
+    Q = rom.simulate(np.zeros(len(K)), np.zeros(len(K)), dt, n, inputs=U).Qh
+    t = dt * np.arange(n + 1)
+    for every, flagged in ((1, False), (3, True)):
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            model = lo.fit(lo.Snapshots(t[::every], Q[:, ::every], U=U[:, ::every]), 4)
+        poor = [w for w in seen if issubclass(w.category, PoorPredictionWarning)]
+        best = min(model.report["candidate_errors"].values())
+        assert bool(poor) == flagged, (every, best, [str(w.message)[:80] for w in seen])
+        assert (best > threshold) if flagged else (best < threshold / 100), (every, best)
+        if flagged:
+            assert "every step" in str(poor[0].message) and poor[0].filename == __file__

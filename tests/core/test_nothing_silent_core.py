@@ -105,3 +105,29 @@ def test_time_grids_with_rounding_are_one_rule():
         m = lo.fit(s, 3, damping=False, mass="identity")
         assert abs(m.dt - 0.01) < 1e-6
         assert s.window(float(t[10]), float(t[100])).Q.shape[1] == 91
+
+
+def test_warnings_from_inside_a_fit_point_at_the_callers_line():
+    """The package's warnings name the user's line (errors.warn: the first frame outside the
+    package), however deep in a fit they arise - bad-input.md's promise. A stopped solver's
+    SolverWarning, and lo.fit's raised-ridge warning (recorded in its final fit and replayed),
+    were attributed to lines of inference.py, _blas.py or fit.py."""
+    import warnings
+    from pathlib import Path
+
+    from dolfinx_lopinf.core import lsq
+
+    from dolfinx_lopinf.core.synthetic import mechanical_data
+
+    Qh, dQh, ddQh, U = mechanical_data("forced", 6, 2000, 0)  # both floors active
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        lo.core.infer_mechanical(Qh, dQh, ddQh, U, solver=lsq.PSDBlocks(method="admm", max_iter=2))
+    solver = [w for w in seen if issubclass(w.category, lo.errors.SolverWarning)]
+    assert solver and all(w.filename == __file__ for w in solver), [(w.filename, w.lineno) for w in seen]
+    d = np.load(Path(__file__).with_name("data") / "comet_gen_alpha_at_t_pod16.npz")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        lo.fit(lo.Snapshots(d["train_times"], d["train_Q"], U=d["train_U"]), 12)
+    assert any("ridge" in str(w.message) for w in seen), [str(w.message)[:80] for w in seen]
+    assert all(w.filename == __file__ for w in seen), [(w.filename, w.lineno) for w in seen]

@@ -345,3 +345,19 @@ def test_point_output_matrix_on_a_mixed_space():
         np.testing.assert_allclose(E @ u.x.array, expected, rtol=1e-13, atol=1e-14)
     with pytest.raises(InputError, match="3 components"):
         point_output_matrix(V, points)
+
+
+def test_snapshot_recorder_checks_its_blocks_before_the_run(square):
+    """blocks= is checked when the recorder is made (it was first refused by rec.snapshots(),
+    after the whole run): rows outside the space, a row in no block, rows given as a 2-D array."""
+    V, n = square
+    u = dolfinx.fem.Function(V)
+    half = np.arange(n // 2)
+    for blocks, match in (({"a": [0, n + 5]}, "outside"), ({"a": half}, "no block"),
+                          ({"a": half[None, :], "b": np.arange(n // 2, n)}, "1-D")):
+        with pytest.raises(InputError, match=match):
+            lo.SnapshotRecorder(u, blocks=blocks)
+    rec = lo.SnapshotRecorder(u, blocks={"a": half, "b": np.arange(n // 2, n)})
+    for k in range(3):
+        rec.record(0.1 * k, u)
+    assert sorted(rec.snapshots().blocks) == ["a", "b"]

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import copy
 import time
-import warnings
 
 import numpy as np
 
-from ...errors import IllConditionedDataWarning
+from ...errors import IllConditionedDataWarning, warn
 from .barrier import Barrier
 from .face import FaceADMM, FaceNewton
 from .ipm import InteriorPoint, interior_point, ip_answer
@@ -107,7 +106,7 @@ def _resolved(problem: Problem):
     resolved, ridge = problem.resolved()
     if ridge is not None:
         cond = problem.spd.condition
-        warnings.warn(
+        warn(
             "the normal equations of the constrained fit "
             + ("are singular to double precision" if not np.isfinite(cond)
                else f"have condition {cond:.1e}")
@@ -115,7 +114,7 @@ def _resolved(problem: Problem):
             f"they resolve); solved with the ridge raised to {ridge:g} * sigma_1 (condition "
             f"{resolved.spd.condition:.1e}): it decides the directions with singular value "
             f"below ~{ridge:g} sigma_1 and moves those 100x above by ~1e-4",
-            IllConditionedDataWarning, stacklevel=5)
+            IllConditionedDataWarning)
     return resolved, ridge
 
 

@@ -39,14 +39,13 @@ numpy (+ cvxpy/clarabel for constrained fits) only; no DOLFINx.
 from __future__ import annotations
 
 import time
-import warnings
 from dataclasses import dataclass, field
 from math import comb
 
 import numpy as np
 import scipy.linalg
 
-from ...errors import InputError, SolverFailedError, SolverWarning
+from ...errors import InputError, SolverFailedError, SolverWarning, warn
 from .._blas import one_blas_thread
 from .._checks import as_real_array, check_matrix, check_positive
 from ..conic import solve_raw
@@ -363,7 +362,7 @@ def _fit_polynomial(data, *, constraint, damping, eps, eps_gram, ridge, solver, 
         if strict:
             from ..errors import SolverFailedError
             raise SolverFailedError(msg)
-        warnings.warn(msg + "; see the certificate", SolverWarning, stacklevel=2)
+        warn(msg + "; see the certificate", SolverWarning)
     # unscale: theta is in q~ = S^-1 q (see _design)
     pot_s = theta[:p_pot]
     div = np.concatenate([_monomial_scale(sig, monomials(r, d)) for d in (2, 3, 4)])
@@ -512,8 +511,8 @@ def _clarabel(cp, prob) -> dict:
         raise SolverFailedError(f"Clarabel failed on the polynomial L-OpInf problem: status {prob.status}")
     gap = abs(raw.obj_val - raw.obj_val_dual)
     if prob.status != "optimal" and gap > 1e-6 * max(abs(raw.obj_val), 1e-300) + 1e-10:
-        warnings.warn(f"Clarabel returned {prob.status} with duality gap {gap:.2e}; see the "
-                      "certificate", SolverWarning, stacklevel=4)
+        warn(f"Clarabel returned {prob.status} with duality gap {gap:.2e}; see the "
+             "certificate", SolverWarning)
     # ||R x - z|| of the compressed problem is the excess over the unconstrained optimum's
     # residual (the QR's constant part is dropped), relative to ||z||
     rel = float(gap / max(abs(prob.value), abs(raw.obj_val_dual), 1e-300))

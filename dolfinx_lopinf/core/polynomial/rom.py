@@ -13,12 +13,11 @@ a :class:`~dolfinx_lopinf.core.polynomial.potential.PolynomialForce`, or any obj
 from __future__ import annotations
 
 import time
-import warnings
 
 import numpy as np
 import scipy.linalg
 
-from ...errors import InputError, NonLagrangianWarning, StepFailedError
+from ...errors import InputError, NonLagrangianWarning, StepFailedError, warn
 from .._checks import as_real_array, check_positive
 from ..compiled import NEWTON_STALL
 from .potential import polynomial_tensors
@@ -65,8 +64,8 @@ class PolynomialROM:
 
             problems = _structure_problems("C", self.C)
             if problems:
-                warnings.warn("; ".join(problems) + ": this damping is not dissipative - the "
-                              "model's energy can grow", NonLagrangianWarning, stacklevel=2)
+                warn("; ".join(problems) + ": this damping is not dissipative - the "
+                     "model's energy can grow", NonLagrangianWarning)
         self._tensors = None
 
     def energy(self, Q, P):
