@@ -121,7 +121,8 @@ def _data_matrix(Qh, dQh, ddQh, U, damping):
     p = sum(block.shape[0] for block in rows)
     if K < p:
         raise InputError(
-            f"{K} snapshots cannot determine {p} unknowns per row; record more "
+            f"{K} data columns (time samples; in lo.fit those its scheme's relation leaves, 2 "
+            f"to 8 fewer than recorded) cannot determine {p} unknowns per row; record more "
             "time samples or lower r"
         )
     return rows, ddQh, r, m

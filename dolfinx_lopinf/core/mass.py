@@ -253,8 +253,9 @@ def prepare(Qh, dQh, ddQh, U, *, damping, eps, ridge, strict, rho) -> Prepared:
     rows = [k * data for _, data, k in blocks]
     p = sum(x.shape[0] for x in rows)
     if n_samples < p:
-        raise InputError(f"{n_samples} snapshots cannot determine {p} unknowns per row; record "
-                         "more time samples or lower r")
+        raise InputError(f"{n_samples} data columns (time samples; in lo.fit those its scheme's "
+                         f"relation leaves, 2 to 8 fewer than recorded) cannot determine {p} "
+                         "unknowns per row; record more time samples or lower r")
     names = [f"ddQh[{i}]" for i in range(r)] + block_names(r, m, damping)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IllConditionedDataWarning)
