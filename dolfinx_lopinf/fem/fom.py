@@ -249,10 +249,15 @@ def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, rec
             from step 0.
 
     Returns:
-        ``(snapshots, info)``: Snapshots on rank 0 (None elsewhere); info has ``seconds``
+        ``(snapshots, info)``: Snapshots on rank 0 (None elsewhere), tagged with the
+        integrator's scheme (``"midpoint"``: what ``lo.fit`` fits); info has ``seconds``
         (wall time of the time loop), ``steps``, ``energy_drift`` (max |E - E0| / |E0| over
         the recorded energies), ``resumed_from_step``, ``checkpoint_bytes`` (bytes this rank
-        wrote to checkpoint files) and ``checkpoint_seconds`` (time spent writing them).
+        wrote to checkpoint files), ``checkpoint_seconds`` (time spent writing them) and
+        ``state_map`` - the order of the snapshots' rows (by dof coordinates unless you passed
+        one): pass it to :func:`~dolfinx_lopinf.fem.vtx.write_vtx`,
+        :func:`~dolfinx_lopinf.fem.vtx.states_to_function` and
+        :func:`~dolfinx_lopinf.fem.vtx.state_rows`, whose default is the recorder's dof order.
     """
     plan = _plan(system, dt, t_end, record_every, state_until, output_matrix, state_map,
                  energy_every, energy_until, integrator, checkpoint, checkpoint_every,
@@ -326,5 +331,7 @@ def _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map, recor
     ys = probe.values if probe is not None else []
     Y = np.array(ys).T if ys else None
     snaps = Snapshots(times=times, Q=Qg, blocks=state_map.blocks, V=Vg, energy=energy_full,
-                      Y=Y, output_times=np.array(probe.times) if ys else None)
+                      Y=Y, output_times=np.array(probe.times) if ys else None,
+                      scheme=getattr(stepper, "scheme", None))  # lo.fit fits that relation
+    info["state_map"] = state_map  # the rows' order: write_vtx & co default to dof order
     return snaps, info

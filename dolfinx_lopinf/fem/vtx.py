@@ -13,7 +13,8 @@ SnapshotRecorder` and :func:`~dolfinx_lopinf.fem.state.gather_states` gather it.
 apply the exact inverse (dofs[order] = state / scale), then give each rank its owned dofs and
 update the ghosts, so SnapshotRecorder -> states -> :func:`write_vtx` round-trips for any number
 of ranks (the default state map is the recorder's default, ``StateMap.identity``: row i is
-global dof i; pass ``state_map=rec.state_map`` for another).
+global dof i; pass ``state_map=rec.state_map`` for another, and ``info["state_map"]`` for
+``lo.run``'s snapshots, which are ordered by dof coordinates).
 
 Partial states (``rows=``): ``states`` holds only the listed state rows (what
 ``Basis.reconstruct(Qh, rows=rows)`` returns); the other state rows are written as
@@ -183,8 +184,10 @@ def states_to_function(V, state, state_map: StateMap | None = None, f=None, *, r
         V: the FunctionSpace the states were recorded on (or a Function of it).
         state: (n,) state in the state map's order, on rank 0 (ignored elsewhere; may be None);
             with ``rows``, only those state rows (len(rows),).
-        state_map: the recorder's state map (default ``StateMap.from_coordinates(V)``, the
-            recorder's default).
+        state_map: the order of the state rows (default: row i is global dof i, a
+            SnapshotRecorder's default; ``rec.state_map`` for another recorder order, and for
+            ``lo.run``'s snapshots its ``info["state_map"]``, by dof coordinates - without it
+            the field is scrambled).
         f: Function on V to fill (default: a new one).
         rows: optional state rows that ``state`` holds; the others get ``fill``.
         fill: value of the state rows not in ``rows``.
@@ -350,7 +353,10 @@ def write_vtx(path, V, states, times, *, state_map: StateMap | None = None, name
         states: (n, K) full states, e.g. ``basis.reconstruct(Qh)``, in the state map's order,
             on rank 0 (ignored elsewhere; may be None). With ``rows``: (len(rows), K).
         times: (K,) increasing times of the columns (rank 0's are used).
-        state_map: the recorder's state map (default ``StateMap.from_coordinates(V)``).
+        state_map: the order of the state rows (default: row i is global dof i, a
+            SnapshotRecorder's default; ``rec.state_map`` for another recorder order, and for
+            ``lo.run``'s snapshots its ``info["state_map"]``, by dof coordinates - without it
+            the field is scrambled).
         name: the field's name in ParaView.
         rows: optional state rows that ``states`` holds (see :func:`state_rows`); the other
             rows are written as ``fill``.
