@@ -12,7 +12,8 @@ integrators as objects), ``errors``, ``core`` (every step of the pipeline, numpy
 ``core.infer_mechanical``, ``core.LagrangianROM``, ...) and ``parametric`` (one model for a
 family of designs) import without DOLFINx; ``SnapshotRecorder``, ``LagrangianSystem``,
 ``run``, ``write_vtx``, ``point_output_matrix`` and ``fem`` (the DOLFINx layer: integrators,
-state maps, probes, derived outputs, Galerkin projection) are loaded on first use.
+state maps, probes, derived outputs, Galerkin projection) are loaded on first use, as is
+``viz`` (off-screen pyvista renders and matplotlib figures).
 """
 
 import importlib.util as _ilu
@@ -47,8 +48,8 @@ _LAZY = {
 def __getattr__(name):
     import importlib
 
-    if name == "fem":
-        return importlib.import_module(".fem", __name__)
+    if name in ("fem", "viz"):
+        return importlib.import_module(f".{name}", __name__)
     if name in _LAZY:
         return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r} (the step-by-step "
@@ -56,4 +57,4 @@ def __getattr__(name):
 
 
 __all__ = ["fit", "ReducedModel", "Snapshots", "pod", "relative_error", "schemes", "errors",
-           "core", "fem", "parametric", *_LAZY]
+           "core", "fem", "viz", "parametric", *_LAZY]

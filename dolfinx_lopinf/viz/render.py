@@ -369,7 +369,7 @@ def output_error_energy(path, t: np.ndarray, outputs: dict, energies: dict, *, y
                         title: str = "", vline: float | None = None,
                         t_energy: np.ndarray | None = None) -> Path:
     """Three stacked panels against time: outputs (label -> y; the first is the reference),
-    each ROM's error |y - y_ref| / max|y_ref| (log), and energies (label -> E; first =
+    each ROM's error ``|y - y_ref| / max|y_ref|`` (log), and energies (label -> E; first =
     reference) at ``t_energy`` (default ``t``)."""
     plt = _pyplot()
     colors = ["C7", "C0", "C3", "C2", "C1"]
@@ -456,7 +456,7 @@ def error_vs_parameter(path, rows: list[dict], *, index: int = 0, name: str = "m
 def scalar_fields(path, grid, frames: list[dict], *, titles=None, warp: float | None = None,
                   clim=None, title: str | None = None, panel=(330, 300), overlay=None) -> Path:
     """2D scalar fields (membrane displacement) as coloured, optionally warped surfaces: one
-    row per frame, one column per label (e.g. FOM | L-OpInf | |error|). A label starting
+    row per frame, one column per label (e.g. ``FOM``, ``L-OpInf``, ``|error|``). A label starting
     with '|' gets its own colour range (an error), the others share one (symmetric).
     ``overlay``: (k, 2) points of an outline drawn on the flat panels (an inclusion)."""
     pv = _pyvista()

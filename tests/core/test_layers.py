@@ -45,11 +45,12 @@ try:
     dolfinx_error = "none"
 except ImportError as exc:
     dolfinx_error = str(exc)
+viz = sorted(lo.viz.__all__)  # lo.viz is reachable and imports pyvista/matplotlib only to draw
 loaded = sorted(m for m in json.loads(sys.argv[1]) if sys.modules.get(m) is not None)
 print(json.dumps({"scheme": model.scheme.spec, "mass": model.report["mass"], "error": err,
                   "candidates": sorted(model.report.get("candidate_errors", {})),
                   "backend": pred.backend, "same": bool(np.array_equal(back.rom.K, model.rom.K)),
-                  "dolfinx_error": dolfinx_error, "loaded": loaded}))
+                  "dolfinx_error": dolfinx_error, "loaded": loaded, "viz": viz}))
 """
 
 
@@ -65,6 +66,7 @@ def test_numpy_core_runs_without_dolfinx_or_any_extra():
     assert out["error"] < 1e-6, out                      # exact data, exact relation
     assert out["same"], out
     assert "DOLFINx" in out["dolfinx_error"], out        # the FOM layer names what to install
+    assert "deformed_side_by_side" in out["viz"], out     # lo.viz without its extras loaded
 
 
 # -- the import graph: layers, no circles, core tests on the core alone -----------------------
