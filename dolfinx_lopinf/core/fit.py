@@ -29,9 +29,11 @@ model: it is replaced by Mh = I (the data cannot separate them; the structurally
 extrapolates better). A learned-mass candidate is scored as the final fit returns it: where
 its interior point stalls at the default ridge it is certified with the ridge raised
 (:func:`~dolfinx_lopinf.core.infer_mechanical`), and the chosen model's final fit starts at
-that ridge - a stalled fit's held-back error is not reproducible. A named scheme whose
-relation residual is 3x another's gets a :class:`~dolfinx_lopinf.errors.SchemeMismatchWarning`
-naming the better one. From r = 12 on
+that ridge - a stalled fit's held-back error is not reproducible. A chosen model whose
+held-back error exceeds ``HELD_BACK_WARN`` (5 %) gets a
+:class:`~dolfinx_lopinf.errors.PoorPredictionWarning`. A named (or recorded) scheme whose
+relation residual is 3x that of another whose relation holds to the data's rounding gets a
+:class:`~dolfinx_lopinf.errors.SchemeMismatchWarning` naming the better one. From r = 12 on
 the candidates are fitted on threads (the cores the process may use, shared among MPI ranks,
 or ``DOLFINX_LOPINF_FIT_THREADS``); each is computed as alone, so the result does not depend
 on the thread count.
@@ -96,7 +98,8 @@ HELD_BACK_WARN = 0.05
 #: takes milliseconds and threads cost more than they give: measured in the CHANGELOG)
 PARALLEL_FROM_R = 12
 FIT_THREADS_ENV = "DOLFINX_LOPINF_FIT_THREADS"
-#: A named scheme whose relation residual exceeds the best one's by this factor is contradicted.
+#: A named scheme whose relation residual exceeds the best one's by this factor is contradicted
+#: (when the best holds to RESIDUAL_FLOOR: :func:`_relation_for`).
 MISMATCH = 3.0
 #: ... and exceeds this (below it both relations hold to the data's accuracy)
 MISMATCH_FLOOR = 1e-9
