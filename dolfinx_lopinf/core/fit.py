@@ -51,7 +51,7 @@ import numpy as np
 from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
 from .basis import Basis, from_svd, leading_svd, pod
-from ._checks import as_real_array
+from ._checks import as_real_array, check_int
 from ..errors import (FileFormatError, InputError, PoorPredictionWarning, SchemeMismatchWarning,
                       warn)
 from .identify import (CLEAR_GAIN, REFINEMENT_GAIN, RESIDUAL_FLOOR, SHORTLIST, Residual, identify,
@@ -436,6 +436,8 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     """
     if mass not in MASS_MODELS:
         raise InputError(f"mass must be one of {MASS_MODELS}, got {mass!r}")
+    if basis is None:  # r = 2.5, "4", True or 0 were a raw TypeError, r = 1 or a data error
+        r = check_int(r, "r (the reduced dimension)", 1)
     dampings = _damping_candidates(damping)
     trajs = _trajectories(snapshots)
     requested = _requested_scheme(trajs, scheme)

@@ -131,3 +131,14 @@ def test_warnings_from_inside_a_fit_point_at_the_callers_line():
         lo.fit(lo.Snapshots(d["train_times"], d["train_Q"], U=d["train_U"]), 12)
     assert any("ridge" in str(w.message) for w in seen), [str(w.message)[:80] for w in seen]
     assert all(w.filename == __file__ for w in seen), [(w.filename, w.lineno) for w in seen]
+
+
+@pytest.mark.parametrize("r, match", [(2.5, "must be an integer, got 2.5"),
+                                      ("4", "must be an integer, got '4'"),
+                                      (True, "must be an integer, got the boolean"),
+                                      (0, "must be >= 1, got 0")])
+def test_lo_fit_names_a_bad_reduced_dimension(r, match):
+    """r = 2.5 and "4" were raw TypeErrors from inside the POD, r = True fitted r = 1, and r = 0
+    blamed the data ("the target is identically zero")."""
+    with pytest.raises(InputError, match=r"r \(the reduced dimension\) " + match):
+        lo.fit(_snaps(), r, damping=False)
