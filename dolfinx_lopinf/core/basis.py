@@ -35,12 +35,15 @@ class Basis:
             the single block ``"all"``.
         blocks: name -> (row indices of the full state, column indices of V).
         weight: (n, n) SPD inner-product matrix W (V^T W V = I), or None for Euclidean.
+        dual: (n, r) W V, what :meth:`project` applies where W itself is not kept (a model
+            loaded from a file stores W V, not the n x n W); None otherwise.
     """
 
     V: np.ndarray
     singular_values: dict
     blocks: dict
     weight: np.ndarray | None = None
+    dual: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -57,6 +60,8 @@ class Basis:
             raise InputError(f"Q must be (n,) or (n, K) with n = {self.n} (the basis' rows), got "
                              f"shape {Q.shape}")
         check_finite(Q, "Q")
+        if self.weight is None and self.dual is not None:
+            return self.dual.T @ Q
         return self.V.T @ (Q if self.weight is None else self.weight @ Q)
 
     def reconstruct(self, Qh: np.ndarray, rows=None) -> np.ndarray:

@@ -176,7 +176,9 @@ class ReducedModel:
                     fit_report=plain(self.report))
         rom = LagrangianROM(K=self.rom.K, M=self.rom.M, C=self.rom.C, B=self.rom.B, E=self.rom.E,
                             meta=meta, scheme=self.rom.scheme, lagrangian=self.rom.lagrangian)
-        return save_rom(path, rom, basis_rows=self.basis.V, rows=np.arange(self.basis.n))
+        b = self.basis  # a weighted basis projects with W V (W itself is n x n: not stored)
+        dual = b.dual if b.weight is None else b.weight @ b.V
+        return save_rom(path, rom, basis_rows=b.V, rows=np.arange(b.n), basis_dual=dual)
 
     @classmethod
     def load(cls, path) -> "ReducedModel":
@@ -201,7 +203,11 @@ class ReducedModel:
         dt = rom.meta["fit_dt"]
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not (np.isfinite(dt) and dt > 0):
             raise FileFormatError(f"{path}: entry fit_dt must be a positive number, got {dt!r}")
-        return cls(rom, Basis(V, {}, {}), scheme, float(dt), rom.meta.get("fit_report", {}))
+        dual = extras.get("basis_dual")
+        if dual is not None and (dual.shape != V.shape or not np.all(np.isfinite(dual))):
+            raise FileFormatError(f"{path}: entry basis_dual must be a finite {V.shape} array, got "
+                                  f"shape {dual.shape}")
+        return cls(rom, Basis(V, {}, {}, dual=dual), scheme, float(dt), rom.meta.get("fit_report", {}))
 
 
 def _whole_steps(t_end, dt) -> int:

@@ -360,7 +360,7 @@ def _json_default(value):
 
 
 def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
-             rows: np.ndarray | None = None) -> Path:
+             rows: np.ndarray | None = None, basis_dual: np.ndarray | None = None) -> Path:
     """Write a ROM to one ``.npz``: operators, scheme, metadata (JSON) and optionally rows of
     its basis (e.g. the dofs of an output point, for partial reconstruction). The write is
     atomic: an interrupted save leaves any previous file at ``path`` intact.
@@ -368,6 +368,8 @@ def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
     Args:
         basis_rows: (len(rows), r) rows of the basis V to ship with the ROM.
         rows: their indices in the full state.
+        basis_dual: with a weighted basis (V^T W V = I), the (n, r) W V that projects full
+            states (shipped with the whole basis only).
 
     Returns:
         The path written (``.npz`` appended unless ``path`` ends in it).
@@ -396,6 +398,14 @@ def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
                              f"basis_rows), got {rows.dtype} of shape {rows.shape}")
         arrays["basis_rows"] = basis_rows
         arrays["rows"] = rows
+        if basis_dual is not None:
+            basis_dual = check_matrix(basis_dual, "basis_dual")
+            if basis_dual.shape != basis_rows.shape:
+                raise InputError(f"basis_dual must have the shape of basis_rows "
+                                 f"{basis_rows.shape}, got {basis_dual.shape}")
+            arrays["basis_dual"] = basis_dual
+    elif basis_dual is not None:
+        raise InputError("basis_dual given without basis_rows")
     elif rows is not None:
         raise InputError("rows given without basis_rows; pass both or neither")
     return atomic_savez(path, **arrays)
@@ -403,7 +413,7 @@ def save_rom(path, rom: LagrangianROM, *, basis_rows: np.ndarray | None = None,
 
 def load_rom(path) -> tuple[LagrangianROM, dict]:
     """Read a ROM written by :func:`save_rom`; returns ``(rom, extras)`` where extras may hold
-    ``basis_rows`` and ``rows``.
+    ``basis_rows``, ``rows`` and ``basis_dual``.
 
     Raises:
         FileNotFoundError: no such file.
@@ -428,7 +438,7 @@ def load_rom(path) -> tuple[LagrangianROM, dict]:
                     raise FileFormatError(f"{path}: entry {key!r} must be a JSON string, got "
                                           f"{value.dtype} of shape {value.shape}")
                 texts[key] = str(value)
-        extras = {k: read(k) for k in ("basis_rows", "rows") if k in data.files}
+        extras = {k: read(k) for k in ("basis_rows", "rows", "basis_dual") if k in data.files}
     if scheme.ndim != 0 or scheme.dtype.kind != "U":
         raise FileFormatError(f"{path}: entry 'scheme' must be a string, got {scheme.dtype} of "
                               f"shape {scheme.shape}")

@@ -117,6 +117,30 @@ def test_save_and_load_round_trip(tmp_path):
     assert np.array_equal(a.Qh, b.Qh) and np.array_equal(a.Y, b.Y)
 
 
+def test_a_model_in_a_weighted_basis_projects_full_states_the_same_after_loading(tmp_path):
+    """A model fitted in a mass-orthonormal basis (basis=lo.pod(Q, r, weight=M), the accurate
+    path) projects a full initial state with W: the file keeps W V. Before, the loaded model
+    projected with the Euclidean product - a prediction from a full q0 off by 17x its size."""
+    from dolfinx_lopinf.core import synthetic
+
+    M, K, C, B = synthetic._bar(40)
+    dt, n = 0.05, 300
+    t = dt * np.arange(n + 1)
+    U = np.array([synthetic._bar_train(s) for s in t]).T
+    rom = lo.core.LagrangianROM(K=K, M=M, C=C, B=B, scheme="newmark", lagrangian=False)
+    Q = rom.simulate(np.zeros(len(K)), np.zeros(len(K)), dt, n, inputs=U).Qh
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = lo.fit(lo.Snapshots(t, Q, U=U), 5, basis=lo.pod(Q, 5, weight=M), mass="identity")
+    back = lo.ReducedModel.load(model.save(tmp_path / "weighted"))
+    q0 = Q[:, 150]
+    np.testing.assert_allclose(back.basis.project(q0), model.basis.project(q0), rtol=0,
+                               atol=1e-13 * np.abs(model.basis.project(q0)).max())
+    a = model.predict(40, q0=q0, inputs=U[:, 150:191])
+    b = back.predict(40, q0=q0, inputs=U[:, 150:191])
+    assert np.abs(a.Qh - b.Qh).max() <= 1e-12 * np.abs(a.Qh).max()
+
+
 def test_bad_trajectory_lists_are_named():
     K, C, B = _system(3)
     a = _newmark(K, C, B, 0.02, 300, np.array([1.0, 0, 0, 0]), _load)
