@@ -27,7 +27,7 @@ import numpy as np
 from ._dolfinx import MPI, dolfinx
 from ..core import schemes
 from ..core.snapshots import Snapshots
-from ..errors import InputError
+from ..errors import InputError, ParameterRangeWarning, warn
 from .state import gather_states
 from .integrators import _check_dt, _check_homogeneous, _destroy, _direct_solver, _unique_prefix
 
@@ -74,6 +74,13 @@ def simulate(psys, mu, dt: float, n_steps: int, *, inputs=None, scheme="newmark"
     V, comm = psys.V, psys.V.mesh.comm
     _check_homogeneous(psys.bcs, V)
     mu = psys.check_mu(mu)
+    outside = [] if psys.structure is None else psys.structure.cone_violations(mu)
+    if outside:  # a reduced model refuses such a mu (ParametricModel.check_parameter)
+        warn(f"simulate: mu = {np.asarray(mu).tolist()} lies outside the cone "
+             f"{psys.structure.cone}: " + ", ".join(f"{op} term {t} has coefficient {v:.4g}"
+                                                      for op, t, v in outside)
+             + " - that operator may be indefinite (e.g. a negative stiffness), and the full "
+             "model runs as asked", ParameterRangeWarning)
     ops = psys.assemble(mu)
     M, K, C, bs = ops["M"], ops["K"], ops["C"], ops["b"]
     am, af, beta, gamma = (scheme.alpha_m, scheme.alpha_f, scheme.beta, scheme.gamma)

@@ -121,6 +121,21 @@ def test_fom_rejects_schemes_outside_the_newmark_family(membrane):
         param_fom.simulate(membrane.psys, 1.0, 0.01, 3, inputs=lambda t: [1.0, 2.0])
 
 
+def test_fom_warns_at_a_parameter_outside_the_cone(membrane):
+    """The reduced model refuses a mu outside its certified cone; the full model ran there (a
+    negative Young's modulus) with no word. It now runs with a ParameterRangeWarning naming
+    the term and its coefficient."""
+    import warnings
+
+    from dolfinx_lopinf.errors import ParameterRangeWarning
+
+    with pytest.warns(ParameterRangeWarning, match=r"outside the cone.*stiffness term mu has coefficient -0.5"):
+        param_fom.simulate(membrane.psys, -0.5, 0.01, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ParameterRangeWarning)
+        param_fom.simulate(membrane.psys, 1.0, 0.01, 2)
+
+
 def _complete_basis(psys):
     """Every free dof, orthonormal in the mass: V^T M V = I, r = n - (boundary dofs)."""
     W = psys.mass_matrix()
