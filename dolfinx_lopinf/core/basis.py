@@ -110,7 +110,8 @@ class Basis:
             cols.extend(bcols[:size])
             new_blocks[name] = (rows, np.arange(start, start + size))
             start += size
-        return Basis(self.V[:, cols], self.singular_values, new_blocks, self.weight)
+        dual = None if self.dual is None else self.dual[:, cols]  # W V's columns, as V's
+        return Basis(self.V[:, cols], self.singular_values, new_blocks, self.weight, dual)
 
 
 def _split(r: int, names: list) -> list[int]:

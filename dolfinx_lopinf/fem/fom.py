@@ -332,6 +332,6 @@ def _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map, recor
     Y = np.array(ys).T if ys else None
     snaps = Snapshots(times=times, Q=Qg, blocks=state_map.blocks, V=Vg, energy=energy_full,
                       Y=Y, output_times=np.array(probe.times) if ys else None,
-                      scheme=getattr(stepper, "scheme", None))  # lo.fit fits that relation
+                      scheme=stepper.scheme)  # lo.fit fits that relation
     info["state_map"] = state_map  # the rows' order: write_vtx & co default to dof order
     return snaps, info

@@ -139,6 +139,11 @@ def test_a_model_in_a_weighted_basis_projects_full_states_the_same_after_loading
     a = model.predict(40, q0=q0, inputs=U[:, 150:191])
     b = back.predict(40, q0=q0, inputs=U[:, 150:191])
     assert np.abs(a.Qh - b.Qh).max() <= 1e-12 * np.abs(a.Qh).max()
+    # a basis that carries W V keeps projecting with it when truncated
+    b5 = model.basis
+    held = lo.core.Basis(b5.V, b5.singular_values, b5.blocks, dual=M @ b5.V)
+    np.testing.assert_allclose(held.truncate(3).project(q0), b5.truncate(3).project(q0),
+                               rtol=0, atol=1e-13 * np.abs(b5.project(q0)).max())
 
 
 def test_bad_trajectory_lists_are_named():
