@@ -269,3 +269,44 @@ def check_blocks(blocks, n: int, name: str = "blocks") -> dict:
             f"({', '.join(map(repr, out))}): {_row_list(missing)}; add them to a block, or "
             "drop them from the states before building the basis")
     return out
+
+
+#: a weight is symmetric when max |W - W^T| <= WEIGHT_SYMMETRY max |W| (assembled mass
+#: matrices are symmetric to the last bits; anything further off is not an inner product)
+WEIGHT_SYMMETRY = 1e-10
+
+
+def check_weight(weight, n: int, name: str = "weight"):
+    """An inner-product matrix of the states: ``weight`` as a float64 ``scipy.sparse``
+    CSR array (when sparse) or a dense (n, n) array, symmetrised, with a named
+    ``InputError`` unless it is (n, n), finite, symmetric (:data:`WEIGHT_SYMMETRY`) and has a
+    positive diagonal (positive definiteness on the data's span is checked where it is used,
+    :func:`~dolfinx_lopinf.core.basis.pod`)."""
+    import scipy.sparse as sp
+
+    if sp.issparse(weight):
+        if weight.dtype.kind not in "fiu":
+            raise InputError(f"{name} must be a real matrix, got dtype {weight.dtype}")
+        W = sp.csr_array(weight, dtype=float)
+        values = W.data
+    else:
+        W = as_real_array(weight, name)
+        values = W
+    if W.ndim != 2 or W.shape != (n, n):
+        raise InputError(f"{name} must be ({n}, {n}) - an inner product of the {n} state rows, "
+                         f"e.g. the mass matrix - got shape {W.shape}")
+    check_finite(values, name, "an inner-product matrix must be finite")
+    top = float(np.abs(values).max()) if values.size else 0.0
+    asym = abs(W - W.T)
+    asym = float(asym.max()) if sp.issparse(asym) else float(np.max(asym))
+    if asym > WEIGHT_SYMMETRY * top:
+        raise InputError(f"{name} is not symmetric (max |W - W^T| = {asym:.3g} against max |W| = "
+                         f"{top:.3g}); an inner product is symmetric positive definite (the mass "
+                         "matrix is)")
+    diag = W.diagonal()
+    if not np.all(diag > 0):
+        i = int(np.argmin(diag))
+        raise InputError(f"{name} has a diagonal entry <= 0 (row {i}: {float(diag[i])!r}); an inner "
+                         "product is positive definite - assemble the mass matrix with its "
+                         "Dirichlet rows kept (diagonal 1), or pass weight=None")
+    return 0.5 * (W + W.T)

@@ -50,7 +50,7 @@ import numpy as np
 
 from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
-from .basis import Basis, from_svd, leading_svd, pod
+from .basis import Basis, from_svd, leading_svd, pod, weighted_svd
 from ._checks import as_real_array, check_int
 from ..errors import (FileFormatError, InputError, PoorPredictionWarning, SchemeMismatchWarning,
                       warn)
@@ -426,7 +426,10 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
             basis) or ``"learned"`` (Mh fitted too, SPD, coordinate-invariant:
             :mod:`dolfinx_lopinf.core.mass`; our own certified interior point, no extra needed).
         basis: a :class:`~dolfinx_lopinf.core.basis.Basis` to use; default the POD of all
-            trajectories' states (block-diagonal when the snapshots name blocks).
+            trajectories' states: in their inner product when they carry one
+            (``Snapshots.weight``: the recorder's L2 Gram matrix, or a mass matrix - the
+            Galerkin projection, much closer to the projection floor than the Euclidean
+            POD), block-diagonal (Euclidean) when the snapshots name blocks, else Euclidean.
         eps, ridge, strict: as in :func:`~dolfinx_lopinf.core.infer_mechanical`.
         holdout: the fraction of every trajectory held back to choose the model.
 
@@ -451,17 +454,25 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
     dt = trajs[0].dt
     Q_all = np.hstack([s.Q for s in trajs])
-    svd = _leading_modes(Q_all, r)  # one (leading) SVD: the basis and the identification
+    # the snapshots' inner product (none for blocks: each block keeps its own Euclidean POD)
+    weight = None if trajs[0].blocks else _common_weight(trajs)
+    # one (leading) SVD: the basis and the identification
+    svd = _leading_modes(Q_all, r if basis is None else basis.r, weight)
     if basis is None:
         basis = pod(Q_all, r, blocks=trajs[0].blocks) if trajs[0].blocks \
-            else from_svd(*svd, r)
+            else from_svd(*svd, r, weight=weight)
+        kind = ("block POD" if trajs[0].blocks else
+                "POD in the snapshots' inner product" if weight is not None else "POD")
     elif not isinstance(basis, Basis) or basis.n != trajs[0].n_states:
         raise InputError(f"basis must be a Basis with {trajs[0].n_states} rows")
+    else:
+        kind = "given"
     pieces = _pieces(trajs, basis.V.T, basis.weight)
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
-              "dt": dt, "requested_scheme": requested if isinstance(requested, str) else requested.spec}
+              "dt": dt, "basis": kind,
+              "requested_scheme": requested if isinstance(requested, str) else requested.spec}
     relation, report["identification"] = _relation_for(requested, *_identification_pieces(
-        trajs, svd, basis.r))
+        trajs, svd, basis.r, weight))
     relations = [relation]
     if requested == "auto":
         # a refined scheme competes with the standard member nearest to it in the residual
@@ -542,18 +553,40 @@ def _pieces(trajs, P, weight=None):
     return [(project(s.Q), s.times, s.U, s.input_times, project(s.V), project(s.A)) for s in trajs]
 
 
-def _leading_modes(Q, r):
+def _leading_modes(Q, r, weight=None):
     """(U, s) of the snapshots: the leading max(r, ID_MAX_R) + LEADING_EXTRA singular
     triplets (:func:`~dolfinx_lopinf.core.basis.leading_svd`) when the data are at least
-    LEADING_FROM times wider than that, else the full thin SVD. Everything lo.fit decides
-    (the rank check of r, the identification's coordinates) uses only these."""
+    LEADING_FROM times wider than that, else the full thin SVD; in the ``weight`` inner
+    product when given (U W-orthonormal). Everything lo.fit decides (the rank check of r, the
+    identification's coordinates) uses only these."""
     k = max(int(r), ID_MAX_R) + LEADING_EXTRA
     if min(Q.shape) >= LEADING_FROM * k:
-        return leading_svd(Q, k)
+        return leading_svd(Q, k, weight=weight)
+    if weight is not None:
+        return weighted_svd(Q, weight)
     return np.linalg.svd(Q, full_matrices=False)[:2]
 
 
-def _identification_pieces(trajs, svd, r):
+def _common_weight(trajs):
+    """The inner product every trajectory carries (``Snapshots.weight``), or None when none
+    does; an InputError when they carry different ones (or only some do)."""
+    weights = [s.weight for s in trajs]
+    if all(w is None for w in weights):
+        return None
+    first = weights[0]
+    for k, w in enumerate(weights[1:], 1):
+        same = w is first or (w is not None and first is not None
+                              and type(w) is type(first) and abs(w - first).max() == 0)
+        if not same:
+            raise InputError(
+                f"the trajectories carry different inner products (Snapshots.weight of "
+                f"trajectory 0 is {'None' if first is None else 'set'}, of trajectory {k} "
+                f"{'None' if w is None else 'different'}); record them with the same "
+                "weight, or pass basis= (e.g. lo.pod(Q, r, weight=M))")
+    return first
+
+
+def _identification_pieces(trajs, svd, r, weight=None):
     """(pieces, check_r): the trajectories in the leading POD coordinates the scheme is
     identified in - as many as the data resolve (singular values above ID_RANK_RTOL of the
     largest), so the truncated modes' closure error does not blur which relation holds, and
@@ -569,7 +602,7 @@ def _identification_pieces(trajs, svd, r):
         return max(1, min(ID_MAX_R, int((n / ID_SAMPLES_PER_UNKNOWN - m) / 2)))
 
     r_id = max(1, min(max(n_sig, min(r, cap(n_all))), cap(n_all), len(s)))
-    return _pieces(trajs, U[:, :r_id].T), min(r_id, cap(0.75 * n_all / 2))
+    return _pieces(trajs, U[:, :r_id].T, weight), min(r_id, cap(0.75 * n_all / 2))
 
 
 def _relation_for(requested, pieces, check_r):

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._checks import as_real_array, check_blocks, check_finite, check_matrix, check_uniform_times
+from ._checks import (as_real_array, check_blocks, check_finite, check_matrix, check_uniform_times,
+                      check_weight)
 from ..errors import FileFormatError, InputError
 from .io_atomic import atomic_savez_compressed, open_npz
 from . import schemes as _schemes
@@ -58,6 +59,10 @@ class Snapshots:
         A: (n, K) accelerations, or None (with V: the scheme's (u, v, a) relation is used).
         input_times: (K_u,) increasing times at which the columns of U act (a
             generalised-alpha loop applies its load at t_{n+1-alpha_f}); None: ``times``.
+        weight: (n, n) inner product of the states - the mass matrix, or the L2 Gram matrix
+            of the finite element space that :class:`~dolfinx_lopinf.SnapshotRecorder`
+            assembles - as a ``scipy.sparse`` or dense symmetric positive definite matrix, or
+            None (Euclidean). :func:`~dolfinx_lopinf.fit` builds its POD basis in it.
     """
 
     times: np.ndarray
@@ -71,6 +76,7 @@ class Snapshots:
     scheme: object = None
     A: np.ndarray | None = None
     input_times: np.ndarray | None = None
+    weight: object = None
 
     def __post_init__(self):
         object.__setattr__(self, "scheme", check_scheme(self.scheme))
@@ -139,6 +145,8 @@ class Snapshots:
             Y = Y.reshape(1, -1) if Y.ndim == 1 else Y
             object.__setattr__(self, "Y", check_matrix(Y, "Y", cols=K if ty is None else len(ty)))
         object.__setattr__(self, "blocks", check_blocks(self.blocks, n))
+        if self.weight is not None:
+            object.__setattr__(self, "weight", check_weight(self.weight, n, "weight"))
 
     @property
     def dt(self) -> float:
@@ -195,6 +203,9 @@ class Snapshots:
         arrays.update({f"block__{k}": v for k, v in self.blocks.items()})
         if self.scheme is not None:
             arrays["scheme"] = np.array(self.scheme.spec)  # 0-d unicode: loads without pickle
+        if self.weight is not None and not isinstance(self.weight, np.ndarray):  # sparse: CSR
+            arrays.update(weight__data=self.weight.data, weight__indices=self.weight.indices,
+                          weight__indptr=self.weight.indptr)
         return atomic_savez_compressed(path, **arrays)
 
     @classmethod
@@ -204,9 +215,10 @@ class Snapshots:
         a file (another format, truncated, missing or unknown entries), and
         ``FileNotFoundError`` when it does not exist."""
         fields = {"times", "Q", "V", "A", "U", "Y", "energy", "output_times", "scheme",
-                  "input_times"}
+                  "input_times", "weight"}
+        sparse_parts = ("weight__data", "weight__indices", "weight__indptr")
         with open_npz(path, "snapshots (Snapshots.save)") as (data, read):
-            names = [k for k in data.files if not k.startswith("block__")]
+            names = [k for k in data.files if not k.startswith("block__") and k not in sparse_parts]
             missing = [k for k in ("times", "Q") if k not in names]
             if missing:
                 raise FileFormatError(f"{path}: lacks {', '.join(map(repr, missing))} "
@@ -224,7 +236,24 @@ class Snapshots:
                                           f"dtype {value.dtype} shape {value.shape}")
                 kw["scheme"] = str(value[()])
             kw["blocks"] = {k[7:]: read(k) for k in data.files if k.startswith("block__")}
+            if any(k in data.files for k in sparse_parts):
+                kw["weight"] = _sparse_weight(path, [read(k) if k in data.files else None
+                                                     for k in sparse_parts], kw["Q"].shape[0])
         try:
             return cls(**kw)
         except InputError as exc:
             raise FileFormatError(f"{path}: the stored snapshots are invalid: {exc}") from exc
+
+
+def _sparse_weight(path, parts, n):
+    """The CSR weight stored by :meth:`Snapshots.save`, or a FileFormatError naming the file."""
+    import scipy.sparse as sp
+
+    data, indices, indptr = parts
+    try:
+        if data is None or indices is None or indptr is None:
+            raise ValueError("part of the CSR arrays is missing")
+        return sp.csr_array((data, indices, indptr), shape=(n, n))
+    except (ValueError, TypeError) as exc:
+        raise FileFormatError(f"{path}: the stored weight (CSR arrays weight__data, "
+                              f"weight__indices, weight__indptr) is damaged: {exc}") from None
