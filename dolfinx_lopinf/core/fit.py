@@ -60,7 +60,7 @@ from ._blas import serial_blas, usable_cores
 from .inference import RIDGE, infer_mechanical, infer_output
 from .io_atomic import plain
 from .rom import LagrangianROM, Trajectory, load_rom, save_rom
-from .snapshots import Snapshots, check_scheme
+from .snapshots import Snapshots, check_scheme, common_weight
 
 MASS_MODELS = ("auto", "identity", "learned")
 DAMPING_MODELS = ("auto", True, False)
@@ -455,7 +455,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
     dt = trajs[0].dt
     Q_all = np.hstack([s.Q for s in trajs])
     # the snapshots' inner product (none for blocks: each block keeps its own Euclidean POD)
-    weight = None if trajs[0].blocks else _common_weight(trajs)
+    weight = None if trajs[0].blocks else common_weight(trajs)
     # one (leading) SVD: the basis and the identification
     svd = _leading_modes(Q_all, r if basis is None else basis.r, weight)
     if basis is None:
@@ -565,25 +565,6 @@ def _leading_modes(Q, r, weight=None):
     if weight is not None:
         return weighted_svd(Q, weight)
     return np.linalg.svd(Q, full_matrices=False)[:2]
-
-
-def _common_weight(trajs):
-    """The inner product every trajectory carries (``Snapshots.weight``), or None when none
-    does; an InputError when they carry different ones (or only some do)."""
-    weights = [s.weight for s in trajs]
-    if all(w is None for w in weights):
-        return None
-    first = weights[0]
-    for k, w in enumerate(weights[1:], 1):
-        same = w is first or (w is not None and first is not None
-                              and type(w) is type(first) and abs(w - first).max() == 0)
-        if not same:
-            raise InputError(
-                f"the trajectories carry different inner products (Snapshots.weight of "
-                f"trajectory 0 is {'None' if first is None else 'set'}, of trajectory {k} "
-                f"{'None' if w is None else 'different'}); record them with the same "
-                "weight, or pass basis= (e.g. lo.pod(Q, r, weight=M))")
-    return first
 
 
 def _identification_pieces(trajs, svd, r, weight=None):

@@ -66,7 +66,7 @@ from ._blas import serial_blas
 from ._checks import pow2_scale
 from .gram import RIDGE, MechanicalOperators, compress, psd_floor
 from .rom import LagrangianROM, Trajectory
-from .snapshots import Snapshots, check_scheme
+from .snapshots import Snapshots, check_scheme, common_weight
 from . import lsq
 from ..errors import InputError, ParameterRangeWarning, SolverWarning, warn
 
@@ -267,6 +267,8 @@ def _basis(pairs, r, basis, weight):
         return basis
     if r is None:
         raise InputError("give r (the reduced dimension) or a basis")
+    if weight is None:  # the inner product the snapshots carry (lo.parametric.simulate's M_0)
+        weight = common_weight([s for _, s in pairs])
     return pod(np.hstack([s.Q for _, s in pairs]), r, weight=weight)
 
 
@@ -573,7 +575,8 @@ def fit_affine(data, structure: AffineStructure, r: int | None = None, *,
             ``ParametricSystem.structure``).
         r, basis, weight: the reduced basis: ``basis``, or the POD of all trajectories with r
             vectors (``weight``: the inner product, e.g. the parameter-free mass matrix - then
-            Mh_0 = I is exact).
+            Mh_0 = I is exact; default the one the snapshots carry, ``Snapshots.weight``,
+            which :func:`dolfinx_lopinf.parametric.simulate` records, else Euclidean).
         scheme: the integrator of the data (a :mod:`~dolfinx_lopinf.core.schemes` object or
             name); None: the one the snapshots carry.
         damping: ``"structure"`` - the damping terms of the structure (none for a
@@ -612,7 +615,7 @@ def fit_affine(data, structure: AffineStructure, r: int | None = None, *,
     basis = _basis(pairs, r, basis, weight)
     t1 = time.perf_counter()
     P = projector(basis)
-    reduced = [(mu, replace(s, Q=P @ s.Q, V=None, A=None)) for mu, s in pairs]
+    reduced = [(mu, replace(s, Q=P @ s.Q, V=None, A=None, weight=None)) for mu, s in pairs]
     t2 = time.perf_counter()
     choice = None
     if damping == "auto" and with_closure(structure) != structure:

@@ -257,3 +257,23 @@ def _sparse_weight(path, parts, n):
     except (ValueError, TypeError) as exc:
         raise FileFormatError(f"{path}: the stored weight (CSR arrays weight__data, "
                               f"weight__indices, weight__indptr) is damaged: {exc}") from None
+
+
+def common_weight(trajs):
+    """The inner product every trajectory (a list of :class:`Snapshots`) carries
+    (``Snapshots.weight``), or None when none does; an InputError when they carry different
+    ones (or only some do)."""
+    weights = [s.weight for s in trajs]
+    if all(w is None for w in weights):
+        return None
+    first = weights[0]
+    for k, w in enumerate(weights[1:], 1):
+        same = w is first or (w is not None and first is not None
+                              and type(w) is type(first) and abs(w - first).max() == 0)
+        if not same:
+            raise InputError(
+                f"the trajectories carry different inner products (Snapshots.weight of "
+                f"trajectory 0 is {'None' if first is None else 'set'}, of trajectory {k} "
+                f"{'None' if w is None else 'different'}); record them with the same "
+                "weight, or pass basis= (e.g. lo.pod(Q, r, weight=M))")
+    return first

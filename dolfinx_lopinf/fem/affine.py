@@ -292,13 +292,22 @@ class ParametricSystem:
         return worst
 
     # -- bases and the intrusive model -------------------------------------------------------
+    def mass_form(self):
+        """The parameter-free mass term's bilinear form (the whole mass form when it does not
+        depend on mu), or None when every mass term carries a parameter."""
+        if self.structure is None:
+            return self.forms["mass"]
+        if () not in self.structure.mass:
+            return None
+        return self.term_forms["mass"][self.structure.mass.index(())]
+
     def mass_matrix(self) -> np.ndarray:
         """The parameter-free mass term (the whole mass when it does not depend on mu) as a
         dense (n, n) state matrix on every rank: the POD weight that makes Mh_0 = I."""
-        if self.structure is not None:
-            form = self.term_forms["mass"][self.structure.mass.index(())]
-        else:
-            form = self.forms["mass"]
+        form = self.mass_form()
+        if form is None:
+            raise InputError("every mass term of this system carries a parameter: there is no "
+                             "parameter-free mass to make a basis orthonormal in")
         return dense_state_matrix(form, self.V, self.state_map)
 
     def _state_vector(self, b) -> np.ndarray:

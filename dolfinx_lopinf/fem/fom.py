@@ -30,7 +30,7 @@ from .checkpoint import CheckpointSink, _add_state_sketches, _checkpoint_files, 
 from .integrators import MidpointIntegrator, _check_dt
 from .lagrangian import LagrangianSystem
 from .loop import OutputProbe, Progress, Sink, run_loop
-from .state import StateMap, _check_state_map, _map_key, gather_states
+from .state import StateMap, _check_state_map, _map_key, gather_states, state_gram
 
 
 class StateRecorder(Sink):
@@ -250,7 +250,9 @@ def run_system(system: LagrangianSystem, q0, v0, dt: float, t_end: float, *, rec
 
     Returns:
         ``(snapshots, info)``: Snapshots on rank 0 (None elsewhere), tagged with the
-        integrator's scheme (``"midpoint"``: what ``lo.fit`` fits); info has ``seconds``
+        integrator's scheme (``"midpoint"``: what ``lo.fit`` fits) and carrying the system's
+        mass matrix as their inner product (``weight``: ``lo.fit``'s POD is mass-orthonormal,
+        the Galerkin projection); info has ``seconds``
         (wall time of the time loop), ``steps``, ``energy_drift`` (max |E - E0| / |E0| over
         the recorded energies), ``resumed_from_step``, ``checkpoint_bytes`` (bytes this rank
         wrote to checkpoint files), ``checkpoint_seconds`` (time spent writing them) and
@@ -324,6 +326,7 @@ def _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map, recor
             "checkpoint_seconds": checkpointer.seconds if checkpointer else 0.0}
     Qg = gather_states(V, recorder.Q, state_map)
     Vg = gather_states(V, recorder.Vel, state_map) if record_velocity else None
+    weight = state_gram(V, state_map, system.mass_form)  # lo.fit's POD: the Galerkin projection
     if comm.rank != 0:
         return None, info
     times = dt * record_every * np.arange(recorder.Q.shape[1])
@@ -332,6 +335,6 @@ def _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map, recor
     Y = np.array(ys).T if ys else None
     snaps = Snapshots(times=times, Q=Qg, blocks=state_map.blocks, V=Vg, energy=energy_full,
                       Y=Y, output_times=np.array(probe.times) if ys else None,
-                      scheme=stepper.scheme)  # lo.fit fits that relation
+                      scheme=stepper.scheme, weight=weight)  # lo.fit fits that relation
     info["state_map"] = state_map  # the rows' order: write_vtx & co default to dof order
     return snaps, info

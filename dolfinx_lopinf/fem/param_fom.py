@@ -28,7 +28,7 @@ from ._dolfinx import MPI, dolfinx
 from ..core import schemes
 from ..core.snapshots import Snapshots
 from ..errors import InputError, ParameterRangeWarning, warn
-from .state import gather_states
+from .state import gather_states, state_gram
 from .integrators import _check_dt, _check_homogeneous, _destroy, _direct_solver, _unique_prefix
 
 fpetsc = dolfinx.fem.petsc
@@ -57,8 +57,9 @@ def simulate(psys, mu, dt: float, n_steps: int, *, inputs=None, scheme="newmark"
             by default.
 
     Returns:
-        ``(snapshots, seconds)``: the Snapshots on rank 0 (None on the others) and the wall
-        time of the time loop (max over ranks).
+        ``(snapshots, seconds)``: the Snapshots on rank 0 (None on the others; their
+        ``weight`` is the parameter-free mass, so ``lo.parametric.fit``'s POD makes Mh_0 = I,
+        when the system has one) and the wall time of the time loop (max over ranks).
     """
     scheme = schemes.from_spec(scheme)
     if not isinstance(scheme, schemes.GeneralizedAlpha):
@@ -163,11 +164,13 @@ def simulate(psys, mu, dt: float, n_steps: int, *, inputs=None, scheme="newmark"
     seconds = comm.allreduce(time.perf_counter() - t0, op=MPI.MAX)
     _destroy(ksp, ksp_m, A, M, K, C, u, v, a, us, vs, rhs, tmp, *bs)
     states = gather_states(V, Q, psys.state_map)
+    mass0 = psys.mass_form()
+    weight = None if mass0 is None else state_gram(V, psys.state_map, mass0)
     if comm.rank != 0:
         return None, seconds
     times = dt * np.arange(n_steps + 1)
     snap = Snapshots(times, states, U=U if m else None, input_times=input_times if m else None,
-                     scheme=scheme, energy=energy)
+                     scheme=scheme, energy=energy, weight=weight)
     return snap, seconds
 
 

@@ -23,6 +23,14 @@ its load at t_{n+1-alpha_f}, not at t: say so with ``input_time=t - alpha_f * dt
 at which the recorded values act), and a load with jumps costs nothing. Without it the
 inputs are taken to act at t and interpolated linearly to where the scheme needs them.
 
+Inner product. The snapshots carry the L2 Gram matrix of your space (``snaps.weight``, sparse,
+in the rows' order; ``inner(u, v) * dx``, assembled once when :meth:`snapshots` is first
+called), and ``lo.fit`` builds its POD basis in that inner product: it measures a field by
+its L2 norm, not by its dof values, so it does not depend on how fine the mesh is where (the
+Euclidean POD favours refined regions). ``weight=`` takes your own bilinear form instead
+(e.g. ``rho * inner(u, v) * dx``) or your assembled PETSc mass matrix; ``weight=None``
+records none (Euclidean POD).
+
 In the package's own time loop the recorder is a sink:
 ``fom.run(integrator, n, sinks=[rec.sink(velocity=True)])`` (``scheme`` defaults to the
 integrator's then).
@@ -39,7 +47,7 @@ import numpy as np
 from ._dolfinx import dolfinx
 from ..errors import InputError
 from .agreement import agree, arrive
-from .state import StateMap, gather_states
+from .state import StateMap, gather_states, state_gram, weight_kind
 from .lagrangian import _on_space
 from ..core._checks import check_blocks
 from ..core.snapshots import Snapshots, check_scheme
@@ -71,6 +79,14 @@ class SnapshotRecorder:
             :mod:`dolfinx_lopinf.core.schemes` object; None (default) = unknown.
         velocity, acceleration: your loop's velocity and acceleration Functions (same space),
             recorded with u at every :meth:`record` call.
+        weight: the inner product of the states recorded as ``Snapshots.weight`` (the POD of
+            ``lo.fit`` is built in it): ``"l2"`` (default: the L2 Gram matrix
+            ``inner(u, v) * dx`` of the space), a UFL bilinear form on the space (e.g.
+            ``rho * inner(u, v) * dx``, assembled without boundary conditions), an assembled
+            PETSc Mat in the space's dof layout (e.g. your mass matrix; global size n x n;
+            read at the first :meth:`snapshots` call, so keep it until then), or None
+            (Euclidean: no weight recorded). Checked now; assembled at the first
+            :meth:`snapshots` call.
 
     Example:
         >>> rec = SnapshotRecorder(u)                                   # doctest: +SKIP
@@ -79,7 +95,7 @@ class SnapshotRecorder:
 
     def __init__(self, u, *, order: str = "dofs", state_map: StateMap | None = None,
                  output_matrix=None, blocks: dict | None = None, scheme=None, velocity=None,
-                 acceleration=None):
+                 acceleration=None, weight="l2"):
         V = u.function_space if isinstance(u, dolfinx.fem.Function) else u
         if not isinstance(V, dolfinx.fem.FunctionSpace):
             raise InputError("SnapshotRecorder needs a dolfinx Function or FunctionSpace, got "
@@ -95,12 +111,26 @@ class SnapshotRecorder:
             problem = f"order must be one of {ORDERS}, got {order!r}"
         if problem is None and state_map is not None and not isinstance(state_map, StateMap):
             problem = f"state_map must be a StateMap, got {type(state_map).__name__}"
-        if problem is None and comm.size > 1:
-            specs = comm.allgather((spec, order if state_map is None else "explicit"))
-            if any(x != specs[0] for x in specs):
+        kind = "none"
+        if weight is not None:
+            try:
+                kind = weight_kind(weight, V)
+            except InputError as exc:
+                problem = problem or f"SnapshotRecorder(weight=...): {exc}"
+        if comm.size > 1:  # one allgather: every rank sees every problem and every setting
+            seen = comm.allgather((problem, (spec, order if state_map is None else "explicit"),
+                                   kind))
+            problem = next((p for p, _, _ in seen if p is not None), None)
+            specs, kinds = [s for _, s, _ in seen], [k for _, _, k in seen]
+            if problem is None and any(x != specs[0] for x in specs):
                 problem = (f"SnapshotRecorder arguments differ between ranks (scheme, order): "
                            f"{specs}; pass the same on every rank")
+            if problem is None and any(k != kinds[0] for k in kinds):
+                problem = (f"SnapshotRecorder arguments differ between ranks (weight): {kinds}; "
+                           "pass the same kind of weight on every rank")
         _verdict(comm, problem)
+        self.weight = weight
+        self._gram = None  # assembled at the first snapshots() call
         self.V = V
         if state_map is None:
             try:
@@ -294,7 +324,8 @@ class SnapshotRecorder:
         return Every(record, every=every, until_step=until_step)
 
     def snapshots(self) -> Snapshots | None:
-        """Gather everything to rank 0 as :class:`Snapshots` (None on the other ranks)."""
+        """Gather everything to rank 0 as :class:`Snapshots` (None on the other ranks), with
+        the recorder's ``weight`` assembled in state coordinates (the first call only)."""
         if len(self._times) < 2:
             raise InputError("record at least two time steps before asking for snapshots")
         arrive(self.V.mesh.comm, "SnapshotRecorder.snapshots()",
@@ -307,6 +338,8 @@ class SnapshotRecorder:
         gather = (lambda rows: gather_states(self.V, np.column_stack(rows), self.state_map)
                   if rows else None)
         Q, Vel, Acc = gather(self._states), gather(self._velocities), gather(self._accelerations)
+        if self.weight is not None and self._gram is None:  # collective; once (None off rank 0)
+            self._gram = (state_gram(self.V, self.state_map, self.weight),)
         if self.V.mesh.comm.rank != 0:
             return None
         U = np.column_stack(self._inputs) if self._inputs else None
@@ -315,4 +348,5 @@ class SnapshotRecorder:
         if ti is not None and len(ti) == len(self._times) and np.array_equal(ti, self._times):
             ti = None  # the inputs act at the state times
         return Snapshots(times=np.array(self._times), Q=Q, blocks=self.state_map.blocks, V=Vel,
-                         A=Acc, U=U, Y=Y, scheme=self.scheme, input_times=ti)
+                         A=Acc, U=U, Y=Y, scheme=self.scheme, input_times=ti,
+                         weight=None if self._gram is None else self._gram[0])

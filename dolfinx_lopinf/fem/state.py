@@ -5,7 +5,9 @@ the number of MPI ranks: state[i] = scale[i] * dofs[order[i]] (:class:`StateMap`
 beams the scales turn nodal slopes into rotations). Each rank touches only its owned dofs;
 :func:`gather_states` assembles them in state coordinates on rank 0. A linear output
 y = E_state state (point values: :func:`point_output_matrix`, any local linear functional
-mapped by :func:`output_matrix_in_state`) is the same on every rank.
+mapped by :func:`output_matrix_in_state`) is the same on every rank. :func:`state_gram` is an
+inner product of the states (by default the L2 Gram matrix of the space) as a sparse matrix in
+state coordinates on rank 0.
 """
 
 from __future__ import annotations
@@ -14,9 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._dolfinx import MPI, dolfinx
+from ._dolfinx import MPI, PETSc, dolfinx, ufl
 from ..errors import InputError
-from .agreement import agree, check
+from .agreement import agree, check, together
+from .lagrangian import _same_dofs
 
 
 @dataclass(frozen=True)
@@ -100,6 +103,143 @@ def gather_states(V, local: np.ndarray, state_map: StateMap) -> np.ndarray | Non
         dofs[g] = values
     scale = state_map.scale.reshape((-1,) + (1,) * (local.ndim - 1))
     return scale * dofs[state_map.order]
+
+
+#: what :func:`state_gram` accepts as ``weight`` (for messages)
+WEIGHTS = ('"l2" (the L2 Gram matrix of the space), a UFL bilinear form on V x V (e.g. '
+           "rho * inner(u, v) * dx) or an assembled PETSc Mat in V's dof layout")
+#: matrix types whose owned rows PETSc hands out directly (MatGetRow); others are converted
+_ROW_TYPES = ("seqaij", "mpiaij", "seqbaij", "mpibaij")
+
+
+def weight_kind(weight, V) -> str:
+    """``"l2"``, ``"form"`` or ``"mat"``: what kind of :func:`state_gram` weight this is (this
+    rank's verdict: the caller makes it collective), or an :class:`InputError` naming what is
+    accepted."""
+    n = V.dofmap.index_map.size_global * V.dofmap.index_map_bs
+    if isinstance(weight, str):
+        if weight == "l2":
+            return "l2"
+        raise InputError(f"weight must be {WEIGHTS}; got the string {weight!r}")
+    if isinstance(weight, PETSc.Mat):
+        if not weight.handle:  # PETSc.Mat() or destroyed (asking it anything would crash)
+            raise InputError("weight is an empty or destroyed PETSc Mat: pass an assembled one, "
+                             "e.g. dolfinx.fem.petsc.assemble_matrix(form) then A.assemble()")
+        size, assembled = tuple(weight.getSize()), weight.assembled
+        same_comm = MPI.Comm.Compare(weight.getComm().tompi4py(), V.mesh.comm) in (
+            MPI.IDENT, MPI.CONGRUENT)
+        if size != (n, n):
+            raise InputError(f"weight is a PETSc Mat of global size {size}; the space has {n} dofs: "
+                             f"pass the ({n}, {n}) matrix of a bilinear form on this space")
+        if not assembled:
+            raise InputError("weight is a PETSc Mat that is not assembled: call A.assemble() first")
+        if not same_comm:
+            raise InputError("weight is a PETSc Mat on another communicator than the space's mesh: "
+                             "assemble it on the mesh's communicator")
+        return "mat"
+    if isinstance(weight, (ufl.Form, dolfinx.fem.Form)):
+        if isinstance(weight, ufl.Form):
+            args = sorted(weight.arguments(), key=lambda a: a.number())
+            spaces = [a.ufl_function_space() for a in args]
+            spaces = [s._cpp_object if isinstance(s, dolfinx.fem.FunctionSpace) else None
+                      for s in spaces]
+        else:
+            spaces = list(weight.function_spaces) if weight.rank == 2 else [None] * weight.rank
+        if len(spaces) != 2:
+            what = {0: "a functional (no arguments)", 1: "a linear form"}.get(len(spaces),
+                                                                              f"a form of rank {len(spaces)}")
+            raise InputError(f"weight is {what}; it must be a bilinear form on V x V, e.g. "
+                             "inner(TrialFunction(V), TestFunction(V)) * dx")
+        if not all(s is not None and (s is V._cpp_object or _same_dofs(s, V)) for s in spaces):
+            raise InputError("weight is a bilinear form on another function space than the "
+                             "recorded one: build it from TrialFunction(V) and TestFunction(V) of "
+                             "the recorded Function's space V")
+        return "form"
+    raise InputError(f"weight must be {WEIGHTS}; got {type(weight).__name__}")
+
+
+def state_gram(V, state_map: StateMap, weight="l2"):
+    """The inner product ``weight`` of V's functions in state coordinates: a symmetric
+    ``scipy.sparse.csr_array`` (n, n) on rank 0, None on the other ranks (collective).
+
+    W_state[i, j] = W_dofs[order[i], order[j]] / (scale[i] scale[j]), so that
+    state_a^T W_state state_b = dofs_a^T W_dofs dofs_b. ``weight`` is
+
+    * ``"l2"`` (default): the L2 Gram matrix, ``inner(u, v) * dx`` (unit density; scalar,
+      vector and mixed spaces alike);
+    * a UFL bilinear form on V x V (e.g. ``rho * inner(u, v) * dx``), assembled without
+      boundary conditions;
+    * an assembled PETSc Mat in V's dof layout (global dof numbering, as
+      ``dolfinx.fem.petsc.assemble_matrix`` returns it; rows of Dirichlet dofs then have
+      diagonal 1).
+
+    Each rank reads its owned rows of the matrix; rank 0 gathers them (sparse: memory of the
+    order of the matrix's nonzeros, never n x n).
+    """
+    if not isinstance(V, dolfinx.fem.FunctionSpace):
+        raise InputError(f"V must be a dolfinx FunctionSpace, got {type(V).__name__}")
+    comm = V.mesh.comm
+    n = V.dofmap.index_map.size_global * V.dofmap.index_map_bs
+
+    kind, problem = None, None
+    try:
+        _check_state_map(state_map, n)
+        kind = weight_kind(weight, V)
+    except Exception as exc:  # noqa: BLE001 - every rank must hear of it (agree)
+        problem = exc
+    agree(comm, "state_gram", problem, weight=kind, state_map=_map_key(state_map))
+    with together(comm, "state_gram"):
+        if kind == "mat":
+            pieces = comm.gather(_owned_csr(weight), root=0)
+        else:
+            form = ufl.inner(ufl.TrialFunction(V), ufl.TestFunction(V)) * ufl.dx(domain=V.mesh) \
+                if kind == "l2" else weight
+            A = dolfinx.fem.petsc.assemble_matrix(
+                form if isinstance(form, dolfinx.fem.Form) else dolfinx.fem.form(form))
+            try:
+                A.assemble()
+                mine = _owned_csr(A)
+            finally:
+                A.destroy()
+            pieces = comm.gather(mine, root=0)
+    if comm.rank != 0:
+        return None
+    return _to_state(pieces, n, state_map)
+
+
+def _owned_csr(A):
+    """(global rows, global columns, values) of the nonzero entries of this rank's rows of the
+    assembled Mat A (collective when A must be converted to AIJ first). Stored zeros are
+    dropped here: the pattern of a vector or mixed space couples components that the form
+    does not (two thirds of a 3D vector mass matrix's entries)."""
+    B = A if A.getType() in _ROW_TYPES else A.convert(PETSc.Mat.Type.AIJ, out=PETSc.Mat())
+    try:
+        first, _ = B.getOwnershipRange()
+        indptr, cols, vals = B.getValuesCSR()
+    finally:
+        if B is not A:
+            B.destroy()
+    rows = np.repeat(np.arange(first, first + len(indptr) - 1, dtype=np.int64), np.diff(indptr))
+    keep = np.flatnonzero(vals)
+    return rows[keep], np.asarray(cols, dtype=np.int64)[keep], np.asarray(vals, dtype=float)[keep]
+
+
+def _to_state(pieces, n: int, state_map: StateMap):
+    """The gathered entries (global dof numbering) as a symmetric CSR array in state
+    coordinates."""
+    import scipy.sparse as sp
+
+    rows, cols, vals = (np.concatenate(parts) for parts in zip(*pieces))
+    inverse = np.empty(n, dtype=np.int64)
+    inverse[np.asarray(state_map.order)] = np.arange(n)
+    i, j = inverse[rows], inverse[cols]
+    scale = np.asarray(state_map.scale, dtype=float)
+    if not np.all(scale == 1.0):
+        vals = vals / (scale[i] * scale[j])
+    W = sp.csr_array((vals, (i, j)), shape=(n, n))
+    W = sp.csr_array(0.5 * (W + W.T))
+    W.sort_indices()
+    return W
 
 
 def output_matrix_in_state(V, E_local: np.ndarray, state_map: StateMap) -> np.ndarray:

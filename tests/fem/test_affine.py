@@ -176,6 +176,8 @@ def test_lopinf_at_r_n_gives_the_projected_terms_back(membrane, scheme):
     data = [(mu, param_fom.simulate(psys, mu, dt, n, inputs=u, scheme=scheme)[0])
             for mu in (0.5, 2.0, 3.5) for u in membrane2d.train_loads()]
     assert data[0][1].scheme == scheme
+    M0 = psys.mass_matrix()  # the snapshots carry the parameter-free mass as inner product
+    assert np.abs(data[0][1].weight.toarray() - M0).max() <= 1e-13 * np.abs(M0).max()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", lo.errors.IllConditionedDataWarning)
         model = lo.parametric.fit_affine(data, psys.structure, basis=basis, damping="structure")

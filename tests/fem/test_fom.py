@@ -90,6 +90,9 @@ def test_energy_is_conserved_by_the_midpoint_integrator(beam):
     # and the UFL energy at t=0 is the analytic strain energy of the initial shape:
     # 1/2 EI int (w0'')^2 = 1/2 EI 1e-6 * 144 / 30
     assert snaps.energy[0] == pytest.approx(0.5 * scene.EI * 1e-6 * 144 / 30, rel=1e-6)
+    # the snapshots carry the system's mass (Hermite scales included) as their inner product
+    M = dense_state_matrix(beam.system.mass_form, beam.system.V, beam.state_map)
+    assert np.abs(snaps.weight.toarray() - M).max() <= 1e-13 * np.abs(M).max()
 
 
 def test_black_box_advance_equals_step_and_keeps_state(beam):

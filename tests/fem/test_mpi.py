@@ -28,7 +28,8 @@ def test_beam_fom_two_ranks_equals_serial(serial_and_parallel):
 @pytest.mark.mpi
 def test_recorder_two_ranks_equals_serial(serial_and_parallel):
     """A user's own dolfinx loop recorded on 1 and 2 ranks gives identical snapshot arrays with
-    order="coordinates", and the same rows up to the ranks' dof numbering by default."""
+    order="coordinates", and the same rows up to the ranks' dof numbering by default; the same
+    for the recorded weights (the L2 Gram matrix, a user's distributed PETSc mass matrix)."""
     a, b = serial_and_parallel(Path(__file__).with_name("mpi_recorder.py"))
     assert a["Q"].shape == (143, 40) and a["Y"].shape == (3, 40)  # three output points
     for key in ("Q", "U", "Y", "t"):
@@ -37,6 +38,13 @@ def test_recorder_two_ranks_equals_serial(serial_and_parallel):
     rows = [np.lexsort(np.round(x["X_dofs"], 10).T[::-1]) for x in (a, b)]
     qa, qb = a["Q_dofs"][rows[0]], b["Q_dofs"][rows[1]]
     assert np.abs(qa - qb).max() <= 1e-12 * np.abs(qa).max()
+    scale = np.abs(a["W_dense"]).max()
+    for x in (a, b):  # each run's weights against its own dense reference
+        assert np.abs(x["W"] - x["W_dense"]).max() <= 1e-13 * scale
+        assert np.abs(x["W_mat"] - 3.0 * x["W_dense"]).max() <= 3e-13 * scale
+    assert np.abs(a["W"] - b["W"]).max() <= 1e-13 * scale  # and the same on 1 and 2 ranks
+    wa, wb = (x["W_dofs"][np.ix_(r, r)] for x, r in zip((a, b), rows))
+    assert np.abs(wa - wb).max() <= 1e-13 * scale
 
 
 def _fom_output_difference(demo, serial_out, parallel_out):
