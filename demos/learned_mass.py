@@ -79,7 +79,7 @@ def cantilever_rows(r_values, quick):
 
     def factory(q):
         E = lo.point_output_matrix(q.function_space, tip, component=2)
-        return lo.SnapshotRecorder(q, output_matrix=E)
+        return lo.SnapshotRecorder(q, output_matrix=E, weight=None)  # Euclidean: the point here
 
     _, rec_train, _ = cantilever.simulate_cantilever(cantilever.train_load, t_end, cells, factory)
     _, rec_test, fom_s = cantilever.simulate_cantilever(cantilever.test_load, t_end, cells, factory)

@@ -20,10 +20,12 @@ Two integrators, `--integrator`:
 Three lines attach the plugin (create the recorder, `record` once per step - with the load
 the step applied and the time it was applied at - and `snapshots()`). Then
 `lo.fit(train, r, scheme=s, mass=m)` for s in auto / the loop's own scheme (named) /
-continuous (8th-order differences), r = 2, 4, 8, four ways: the black-box default (Euclidean
-POD, ``mass="auto"``: the reduced mass Mh = I or learned, chosen on a held-back end), the same
-POD with Mh = I and with the learned Mh forced, and a mass-orthonormal POD built from the
-user's own mass form (one more line; there Mh = I is exact, and auto should keep it).
+continuous (8th-order differences), r = 2, 4, 8, four ways: the default (basis ``"l2"``: the
+POD in the L2 Gram matrix of the space, which the recorder records - for this uniform density
+the mass-orthonormal POD, where Mh = I is exact and auto should keep it), and the same
+snapshots without that inner product (basis ``"euclidean"``: what a pure array of states
+gives, ``mass="auto"``: Mh = I or learned, chosen on a held-back end), with Mh = I and with
+the learned Mh forced.
 Each model predicts the tip deflection under a body-force history it has never seen.
 Writes DIR/metrics.json, DIR/tip_<integrator>.png, DIR/tip_error_<integrator>.png and the
 recorded snapshots DIR/{train,test}_<integrator>.npz (re-fit them without the FOM:
@@ -32,6 +34,7 @@ recorded snapshots DIR/{train,test}_<integrator>.npz (re-fit them without the FO
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 
@@ -39,7 +42,6 @@ import numpy as np
 
 import dolfinx_lopinf as lo  # before dolfinx (the PyPI wheel loads its MPI first)
 from dolfinx_lopinf.viz import render
-from dolfinx_lopinf.fem.intrusive import dense_state_matrix
 from dolfinx_lopinf.studies import harness
 
 import dolfinx  # noqa: E402
@@ -177,11 +179,12 @@ def simulate(load, t_end, dt, integrator="newmark", cells=(10, 2, 2), record=Non
 SCHEMES = ("auto", "named", "continuous")
 #: the loops' own integrators, as dolfinx_lopinf.schemes objects (the "named" fits)
 OWN_SCHEME = {"newmark": lo.schemes.Newmark(), "gen-alpha": lo.schemes.GeneralizedAlpha(rho_inf=0.8)}
-# (basis, reduced mass): the black-box default (Euclidean POD, mass="auto": Mh = I or learned,
-# whichever predicts the held-back end clearly better); the same POD with each mass model
-# forced; a mass-orthonormal POD from the user's mass form (Mh = I exact there), mass="auto"
+# (basis, reduced mass): the Euclidean POD of the snapshots without their inner product
+# (mass="auto": Mh = I or learned, whichever predicts the held-back end clearly better; then
+# each mass model forced) and the default, the POD in the recorded L2 Gram matrix (here the
+# mass-orthonormal POD: Mh = I exact), mass="auto"
 VARIANTS = (("euclidean", "auto"), ("euclidean", "identity"), ("euclidean", "learned"),
-            ("mass-orthonormal", "auto"))
+            ("l2", "auto"))
 
 
 def run_integrator(integrator, args, out):
@@ -198,10 +201,6 @@ def run_integrator(integrator, args, out):
     V, rec_train, fom_train_s = simulate(train_load, t_train, dt, integrator, cells, record)
     _, rec_test, fom_test_s = simulate(test_load, t_test, dt, integrator, cells, record)
     train, test = rec_train.snapshots(), rec_test.snapshots()   # <- line 3 (None off rank 0)
-    # A dolfinx user can also hand over their mass form: a mass-orthonormal POD makes the
-    # reduced mass exactly I, which L-OpInf assumes (a black box, Euclidean POD, cannot).
-    du, u_ = ufl.TrialFunction(V), ufl.TestFunction(V)
-    mass = dense_state_matrix(RHO * ufl.inner(du, u_) * ufl.dx, V, rec_train.state_map)
     if not harness.is_root(comm):
         return None
     train.save(out / f"train_{integrator}.npz")   # to re-fit later without the FOM
@@ -210,12 +209,13 @@ def run_integrator(integrator, args, out):
     rows, preds = [], {}
     for basis_name, mass_model in VARIANTS:
         for r in args.r:
-            basis = None if basis_name == "euclidean" else lo.pod(train.Q, r, weight=mass)
+            # the recorder's inner product (the default) or none (a Euclidean POD)
+            data = train if basis_name == "l2" else dataclasses.replace(train, weight=None)
             for scheme in SCHEMES:
                 t0 = time.perf_counter()
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", lo.errors.LOpInfWarning)  # in the rows
-                    model = lo.fit(train, r, basis=basis, mass=mass_model,
+                    model = lo.fit(data, r, mass=mass_model,
                                    scheme=OWN_SCHEME[integrator] if scheme == "named" else scheme)
                 fit_s = time.perf_counter() - t0
                 pred = model.predict(n_test, inputs=test_load)     # inputs at t_0 .. t_n
@@ -236,9 +236,9 @@ def run_integrator(integrator, args, out):
     series = {"FOM (unseen load)": test.Y[0]}
     for b, mm, s in (("euclidean", "auto", "auto"), ("euclidean", "identity", "auto"),
                      ("euclidean", "auto", "named"), ("euclidean", "auto", "continuous"),
-                     ("mass-orthonormal", "auto", "auto")):
+                     ("l2", "auto", "auto")):
         x = err[(b, mm, s)]
-        label = ("Euclidean POD" if b == "euclidean" else "mass-orth. POD") \
+        label = ("Euclidean POD" if b == "euclidean" else "L2 POD (default)") \
             + (", Mh = I" if mm == "identity" else f", mass auto ({x['mass_chosen']})") \
             + f", {s}" + (f" ({x['scheme'].split('(')[0]})" if s == "auto" else "")
         series[f"{label}: {x['test_error']:.1e}"] = preds[(b, mm, s, r_show)].Y[0]
