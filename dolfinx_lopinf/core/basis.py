@@ -93,10 +93,11 @@ class Basis:
         return V @ Qh
 
     def projection_error(self, Q: np.ndarray) -> float:
-        """||Q - V project(Q)||_F / ||Q||_F: the floor no ROM in this basis can go below
-        (measured in the Euclidean norm of the state, whatever the basis' weight). The norms
-        are scaled first, so data of any finite magnitude (1e-170 .. 1e160) give the same
-        ratio."""
+        """||Q - V project(Q)||_F / ||Q||_F, measured in the Euclidean norm of the state
+        whatever the basis' weight: for a Euclidean basis the floor no ROM in it can go
+        below; for a weighted one the error of its W-orthogonal projection, which a ROM can
+        undercut slightly in this norm (it is the floor in the W norm). The norms are scaled
+        first, so data of any finite magnitude (1e-170 .. 1e160) give the same ratio."""
         Qh = self.project(Q)
         Q = as_real_array(Q, "Q")
         denom = fro_norm(Q)

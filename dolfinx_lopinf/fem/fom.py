@@ -326,7 +326,7 @@ def _run_recorded(system, stepper, q0, v0, plan, output_matrix, state_map, recor
             "checkpoint_seconds": checkpointer.seconds if checkpointer else 0.0}
     Qg = gather_states(V, recorder.Q, state_map)
     Vg = gather_states(V, recorder.Vel, state_map) if record_velocity else None
-    weight = state_gram(V, state_map, system.mass_form)  # lo.fit's POD: the Galerkin projection
+    weight = state_gram(V, state_map, system.mass_form, strict=False)  # lo.fit's POD: the Galerkin projection
     if comm.rank != 0:
         return None, info
     times = dt * record_every * np.arange(recorder.Q.shape[1])

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._dolfinx import MPI, PETSc, dolfinx, ufl
-from ..errors import InputError
+from ..core._checks import check_weight
+from ..errors import InputError, LOpInfWarning, warn
 from .agreement import agree, check, together
 from .lagrangian import _same_dofs
 
@@ -158,9 +159,13 @@ def weight_kind(weight, V) -> str:
     raise InputError(f"weight must be {WEIGHTS}; got {type(weight).__name__}")
 
 
-def state_gram(V, state_map: StateMap, weight="l2"):
+def state_gram(V, state_map: StateMap, weight="l2", *, strict: bool = True):
     """The inner product ``weight`` of V's functions in state coordinates: a symmetric
     ``scipy.sparse.csr_array`` (n, n) on rank 0, None on the other ranks (collective).
+    A matrix that is not an inner product (not symmetric, a diagonal entry <= 0:
+    :func:`~dolfinx_lopinf.core._checks.check_weight`) raises the same InputError on every
+    rank; with ``strict=False`` it gives None on every rank and a warning instead (for the
+    package's own runs, which must not fail at their end over an optional weight).
 
     W_state[i, j] = W_dofs[order[i], order[j]] / (scale[i] scale[j]), so that
     state_a^T W_state state_b = dofs_a^T W_dofs dofs_b. ``weight`` is
@@ -202,9 +207,20 @@ def state_gram(V, state_map: StateMap, weight="l2"):
             finally:
                 A.destroy()
             pieces = comm.gather(mine, root=0)
-    if comm.rank != 0:
+    W, problem = None, None
+    if comm.rank == 0:
+        try:  # checked where it was gathered, the verdict sent to every rank
+            W = check_weight(_to_state(pieces, n, state_map), n, "weight")
+        except InputError as exc:
+            problem = f"the assembled weight is not an inner product of the states: {exc}"
+    problem = comm.bcast(problem, root=0)
+    if problem is not None:
+        if strict:
+            raise InputError(problem)
+        warn(f"{problem}; the snapshots carry no inner product (lo.fit: Euclidean POD)",
+             LOpInfWarning)
         return None
-    return _to_state(pieces, n, state_map)
+    return W
 
 
 def _owned_csr(A):
@@ -225,8 +241,7 @@ def _owned_csr(A):
 
 
 def _to_state(pieces, n: int, state_map: StateMap):
-    """The gathered entries (global dof numbering) as a symmetric CSR array in state
-    coordinates."""
+    """The gathered entries (global dof numbering) as a CSR array in state coordinates."""
     import scipy.sparse as sp
 
     rows, cols, vals = (np.concatenate(parts) for parts in zip(*pieces))
@@ -237,7 +252,6 @@ def _to_state(pieces, n: int, state_map: StateMap):
     if not np.all(scale == 1.0):
         vals = vals / (scale[i] * scale[j])
     W = sp.csr_array((vals, (i, j)), shape=(n, n))
-    W = sp.csr_array(0.5 * (W + W.T))
     W.sort_indices()
     return W
 

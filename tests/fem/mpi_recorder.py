@@ -44,6 +44,17 @@ for n in range(40):
     q.x.petsc_vec.array[:] = new
     q.x.scatter_forward(); q_old.x.scatter_forward()
 snaps, raw, weighted = rec.snapshots(), by_dofs.snapshots(), by_mat.snapshots()
+# a weight that assembles to no inner product: the same InputError on every rank (rank 0
+# gathers and checks it; the others would otherwise go on with None)
+negative = lo.SnapshotRecorder(q, weight=-u * v * ufl.dx)
+negative.record(0.0, q)
+negative.record(dt, q)
+try:
+    negative.snapshots()
+    refused = 0
+except lo.errors.InputError as exc:
+    refused = int("diagonal entry <= 0" in str(exc))
+refused_everywhere = MPI.COMM_WORLD.allreduce(refused, op=MPI.MIN)
 W_dense = dense_state_matrix(ufl.inner(u, v) * ufl.dx, V, rec.state_map)
 # the coordinates of every global dof, to compare the dof-ordered rows across layouts
 imap = V.dofmap.index_map
@@ -55,4 +66,4 @@ if MPI.COMM_WORLD.rank == 0:
         X[g] = x
     np.savez(out, Q=snaps.Q, U=snaps.U, Y=snaps.Y, t=snaps.times, Q_dofs=raw.Q, X_dofs=X,
              W=snaps.weight.toarray(), W_dense=W_dense, W_mat=weighted.weight.toarray(),
-             W_dofs=raw.weight.toarray())
+             W_dofs=raw.weight.toarray(), refused_everywhere=refused_everywhere)

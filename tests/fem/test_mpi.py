@@ -45,6 +45,7 @@ def test_recorder_two_ranks_equals_serial(serial_and_parallel):
     assert np.abs(a["W"] - b["W"]).max() <= 1e-13 * scale  # and the same on 1 and 2 ranks
     wa, wb = (x["W_dofs"][np.ix_(r, r)] for x, r in zip((a, b), rows))
     assert np.abs(wa - wb).max() <= 1e-13 * scale
+    assert a["refused_everywhere"] == 1 and b["refused_everywhere"] == 1
 
 
 def _fom_output_difference(demo, serial_out, parallel_out):

@@ -167,3 +167,19 @@ def test_bad_weights_are_refused_at_construction():
         state_gram(V, StateMap.identity(V), "h1")
     for A in mats:
         A.destroy()
+
+
+def test_a_weight_that_is_no_inner_product_is_refused_when_assembled():
+    """A form that passes the construction checks but assembles to no inner product - not
+    symmetric, or a diagonal entry <= 0 - is an InputError at snapshots() (on every rank:
+    the verdict is broadcast from the rank that gathered it), not silently symmetrised."""
+    V = _space("vector P2")
+    du, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+    skew = (ufl.inner(du, v) + 0.3 * du[0] * v[1]) * ufl.dx
+    with pytest.raises(InputError, match="weight is not symmetric"):
+        _recorded(dolfinx.fem.Function(V), weight=skew)
+    with pytest.raises(InputError, match="diagonal entry <= 0"):
+        _recorded(dolfinx.fem.Function(V), weight=-_mass(V))
+    # the package's own runs do not fail at their end over the optional weight
+    with pytest.warns(lo.errors.LOpInfWarning, match="carry no inner product"):
+        assert state_gram(V, StateMap.identity(V), -_mass(V), strict=False) is None
