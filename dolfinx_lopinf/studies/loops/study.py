@@ -226,8 +226,10 @@ def run_loop(name, size="default", rs=(2, 4, 8), save_to=None, peer=True, copies
                 if copies > 1 and not kwargs:
                     row["fits"][key]["copies"] = _copies(data[style][0], data[style][1], r, copies,
                                                          n_test, loop.test_load, row["fits"][key])
-                if key == "applied":
-                    W, default_model = model.basis.V, model
+                if key == "applied":  # the span of lo.fit's basis, Euclidean-orthonormal (its
+                    # own V is orthonormal in the recorded weight): the floor and the
+                    # Galerkin ROM of that span
+                    W, default_model = np.linalg.qr(model.basis.V)[0], model
             except Exception as exc:  # record the failure, keep going
                 row["fits"][key] = {"failure": f"{type(exc).__name__}: {exc}"[:300]}
         if "applied" not in row["fits"] or "failure" in row["fits"]["applied"]:
