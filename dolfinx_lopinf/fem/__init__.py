@@ -7,7 +7,7 @@ DOLFINx."""
 
 from .derived import DerivedOutput
 from .fom import run
-from .state import StateMap, output_matrix_in_state, point_output_matrix
+from .state import StateMap, output_matrix_in_state, point_output_matrix, state_gram
 from .galerkin_nonlinear import GalerkinForce
 from .integrators import MidpointIntegrator
 from .newmark import NewmarkIntegrator
@@ -20,4 +20,4 @@ from .vtx import state_rows, states_to_function, write_vtx
 __all__ = ["DerivedOutput", "GalerkinForce", "LagrangianSystem", "MidpointIntegrator",
            "NewmarkIntegrator", "SnapshotRecorder", "StateMap", "galerkin_rom",
            "output_matrix_in_state", "point_output_matrix", "probe", "probe_points", "run",
-           "state_rows", "states_to_function", "write_vtx"]
+           "state_gram", "state_rows", "states_to_function", "write_vtx"]
