@@ -67,7 +67,8 @@ test-long: venv
 # that changes here was decided by rounding.
 CORE_TESTS = tests/core/test_engine.py tests/core/test_numpy_core.py tests/core/test_rank.py \
 	tests/core/test_inputs_core.py tests/core/test_fit.py tests/core/test_polynomial_fit.py \
-	tests/core/test_mass.py tests/core/test_schemes.py tests/core/test_threads.py
+	tests/core/test_mass.py tests/core/test_schemes.py tests/core/test_threads.py \
+	tests/core/test_weight.py
 test-rounding: venv
 	LOPINF_TEST_PERTURB=1e-15 OPENBLAS_NUM_THREADS=2 OMP_NUM_THREADS=2 $(PY) -m pytest -q $(CORE_TESTS)
 
