@@ -295,6 +295,12 @@ def check_weight(weight, n: int, name: str = "weight"):
     if W.ndim != 2 or W.shape != (n, n):
         raise InputError(f"{name} must be ({n}, {n}) - an inner product of the {n} state rows, "
                          f"e.g. the mass matrix - got shape {W.shape}")
+    if sp.issparse(W) and not np.all(np.isfinite(values)):  # name (row, column), not the
+        k = int(np.flatnonzero(~np.isfinite(values))[0])    # position in the CSR storage
+        row = int(np.searchsorted(W.indptr, k, side="right")) - 1
+        raise InputError(f"{name} contains {int((~np.isfinite(values)).sum())} non-finite "
+                         f"value(s) (NaN or inf), first at ({row}, {int(W.indices[k])}); an "
+                         "inner-product matrix must be finite")
     check_finite(values, name, "an inner-product matrix must be finite")
     top = float(np.abs(values).max()) if values.size else 0.0
     asym = abs(W - W.T)

@@ -58,6 +58,16 @@ class Basis:
     def r(self) -> int:
         return self.V.shape[1]
 
+    def projector(self) -> np.ndarray:
+        """The (r, n) matrix P of :meth:`project` (Qh = P Q): V^T W, W V as stored for a
+        loaded weighted basis, or V^T for a Euclidean one - formed once, for callers that
+        project many arrays (the fits)."""
+        if self.weight is not None:
+            return np.asarray((self.weight @ self.V).T)
+        if self.dual is not None:
+            return self.dual.T
+        return self.V.T
+
     def project(self, Q: np.ndarray) -> np.ndarray:
         """Reduced coordinates Qh = V^T W Q (W = I for Euclidean POD), (r, K) from (n, K)."""
         Q = as_real_array(Q, "Q")

@@ -454,8 +454,10 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         raise InputError(f"holdout must be a fraction in [0.05, 0.5], got {holdout!r}")
     dt = trajs[0].dt
     Q_all = np.hstack([s.Q for s in trajs])
-    # the snapshots' inner product (none for blocks: each block keeps its own Euclidean POD)
-    weight = None if trajs[0].blocks else common_weight(trajs)
+    # the snapshots' inner product (none for blocks: each block keeps its own Euclidean POD;
+    # with a basis given it serves only the identification's coordinates: Euclidean there
+    # when the trajectories carry different ones)
+    weight = None if trajs[0].blocks else common_weight(trajs, required=basis is None)
     # one (leading) SVD: the basis and the identification
     svd = _leading_modes(Q_all, r if basis is None else basis.r, weight)
     if basis is None:
@@ -467,7 +469,7 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         raise InputError(f"basis must be a Basis with {trajs[0].n_states} rows")
     else:
         kind = "given"
-    pieces = _pieces(trajs, basis.V.T, basis.weight)
+    pieces = _pieces(trajs, basis.projector())  # a loaded basis projects with its stored W V
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
               "dt": dt, "basis": kind,
               "requested_scheme": requested if isinstance(requested, str) else requested.spec}

@@ -273,8 +273,9 @@ def _basis(pairs, r, basis, weight):
 
 
 def projector(basis: Basis) -> np.ndarray:
-    """(r, n) P with P q = V^T W q (W the basis' weight, I when None), formed once."""
-    return basis.V.T if basis.weight is None else (basis.weight.T @ basis.V).T
+    """(r, n) P with P q = V^T W q (W the basis' weight, I when None; a loaded basis' stored
+    W V), formed once."""
+    return basis.projector()
 
 
 def _relations(pairs, P, scheme):
@@ -612,6 +613,7 @@ def fit_affine(data, structure: AffineStructure, r: int | None = None, *,
              "certificate holds: the model fits them but will predict there only with "
              "outside_cone='check'", ParameterRangeWarning)
     t0 = time.perf_counter()
+    basis_given = basis is not None
     basis = _basis(pairs, r, basis, weight)
     t1 = time.perf_counter()
     P = projector(basis)
@@ -637,7 +639,12 @@ def fit_affine(data, structure: AffineStructure, r: int | None = None, *,
               "damping": damping, "held_back_errors": choice,
               "trajectories": len(pairs), "parameters_trained": len(np.unique(mus, axis=0)),
               "samples": int(sum(len(s.times) for _, s in pairs)), "r": basis.r,
-              "mass": ("Mh = I (parameter-free mass; exact in a basis orthonormal in it)"
+              "basis": ("given" if basis_given else "POD in the snapshots' inner product"
+                        if basis.weight is not None else "POD"),
+              "mass": ("Mh = I (parameter-free mass; exact in a basis orthonormal in it"
+                       + ("" if basis.weight is not None or basis_given else
+                          " - this Euclidean POD is not: record the snapshots with their mass "
+                          "(lo.parametric.simulate does) or pass weight=") + ")"
                        if len(fitted.mass) == 1 else
                        "Mh(mu) = I + sum theta_i Mh_i, Mh_i learned PSD"),
               "certificate": cert, "basis_seconds": t1 - t0, "project_seconds": t2 - t1,

@@ -259,21 +259,35 @@ def _sparse_weight(path, parts, n):
                               f"weight__indices, weight__indptr) is damaged: {exc}") from None
 
 
-def common_weight(trajs):
+def common_weight(trajs, required: bool = True):
     """The inner product every trajectory (a list of :class:`Snapshots`) carries
-    (``Snapshots.weight``), or None when none does; an InputError when they carry different
-    ones (or only some do)."""
+    (``Snapshots.weight``; equal to 1e-12 of its largest entry, sparse or dense alike), or
+    None when none does. When they carry different ones (or only some do): an InputError, or
+    None when not ``required`` (the caller has a basis of its own)."""
     weights = [s.weight for s in trajs]
     if all(w is None for w in weights):
         return None
     first = weights[0]
     for k, w in enumerate(weights[1:], 1):
-        same = w is first or (w is not None and first is not None
-                              and type(w) is type(first) and abs(w - first).max() == 0)
-        if not same:
+        if not _same_weight(first, w):
+            if not required:
+                return None
             raise InputError(
                 f"the trajectories carry different inner products (Snapshots.weight of "
                 f"trajectory 0 is {'None' if first is None else 'set'}, of trajectory {k} "
-                f"{'None' if w is None else 'different'}); record them with the same "
-                "weight, or pass basis= (e.g. lo.pod(Q, r, weight=M))")
+                f"{'None' if w is None else 'set' if first is None else 'different'}); record "
+                "them with the same weight, or pass basis= (e.g. lo.pod(Q, r, weight=M))")
     return first
+
+
+def _same_weight(a, b) -> bool:
+    """Both None, or equal to 1e-12 of the largest entry (sparse or dense alike)."""
+    if a is None or b is None:
+        return a is b
+    if a is b:
+        return True
+    import scipy.sparse as sp
+
+    diff = abs(sp.csr_array(a) - sp.csr_array(b))
+    top = abs(sp.csr_array(a)).max()
+    return bool(diff.max() <= 1e-12 * top) if diff.nnz else True

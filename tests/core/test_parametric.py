@@ -122,6 +122,7 @@ def test_fit_recovers_known_affine_operators(model, truth):
     c = model.report["certificate"]
     assert c["converged"] and c["relative_residual"] < 1e-10
     assert c["duality_gap"] <= 1e-8
+    assert model.report["basis"] == "given" and "this Euclidean POD" not in model.report["mass"]
     assert "mu >= 0 and z >= 0" in c["stable_for"] and "not only the 6" in c["stable_for"]
 
 

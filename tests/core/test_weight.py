@@ -141,9 +141,28 @@ def test_trajectories_with_different_inner_products_are_refused(graded):
     other = dataclasses.replace(train, weight=2.0 * train.weight)
     with pytest.raises(InputError, match="different inner products"):
         lo.fit([train, other], 4)
-    with pytest.raises(InputError, match="different inner products"):
+    with pytest.raises(InputError, match="trajectory 0 is set, of trajectory 1 None"):
         lo.fit([train, dataclasses.replace(train, weight=None)], 4)
-    assert lo.fit([train, train], 4).report["basis"] == "POD in the snapshots' inner product"
+    with pytest.raises(InputError, match="trajectory 0 is None, of trajectory 1 set"):
+        lo.fit([dataclasses.replace(train, weight=None), train], 4)
+    # as the message says, a basis of one's own settles it
+    basis = lo.pod(train.Q, 4, weight=train.weight)
+    assert lo.fit([train, other], 4, basis=basis).report["basis"] == "given"
+    # the same weight, sparse and dense or one rounding apart, is one inner product
+    dense = dataclasses.replace(train, weight=train.weight.toarray() * (1 + 1e-15))
+    assert lo.fit([train, dense], 4).report["basis"] == "POD in the snapshots' inner product"
+
+
+def test_a_loaded_models_basis_fits_as_the_original(graded, tmp_path):
+    """A weighted basis read back from a model file keeps W V, not W: lo.fit must project
+    with it (it projected with V^T, a different and silently worse model)."""
+    model = lo.fit(graded["train"], 6)
+    loaded = lo.ReducedModel.load(model.save(tmp_path / "m")).basis
+    assert loaded.weight is None and loaded.dual is not None
+    refit = lo.fit(graded["train"], 6, basis=loaded)
+    again = lo.fit(graded["train"], 6, basis=model.basis)
+    assert np.allclose(refit.rom.K, again.rom.K, rtol=1e-9, atol=1e-12 * np.abs(again.rom.K).max())
+    assert np.allclose(loaded.projector(), model.basis.projector(), rtol=0, atol=1e-14)
 
 
 def test_blocks_keep_their_euclidean_block_pod(graded):
