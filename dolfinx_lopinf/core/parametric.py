@@ -54,6 +54,7 @@ O(terms r^2) and its steps cost what a fixed-parameter ROM's cost - independent 
 from __future__ import annotations
 
 import itertools
+import json
 import time
 from dataclasses import dataclass, field, replace
 
@@ -68,7 +69,8 @@ from .gram import RIDGE, MechanicalOperators, compress, psd_floor
 from .rom import LagrangianROM, Trajectory
 from .snapshots import Snapshots, check_scheme, common_weight
 from . import lsq
-from ..errors import InputError, ParameterRangeWarning, SolverWarning, warn
+from ..errors import FileFormatError, InputError, ParameterRangeWarning, SolverWarning, warn
+from .io_atomic import atomic_savez_compressed, open_npz, plain
 
 #: the operators of M a + C v + K u = B f that an affine structure lists terms of
 OPERATORS = ("mass", "damping", "stiffness", "inputs")
@@ -401,6 +403,65 @@ class ParametricModel:
 
     def reconstruct(self, Qh, rows=None) -> np.ndarray:
         return self.basis.reconstruct(Qh, rows=rows)
+
+    def save(self, path):
+        """One ``.npz``, written atomically: the structure, every term, the basis (V, and the
+        W V that projects full states when the basis is weighted), the scheme, dt, the
+        training parameters and the report. :meth:`load` reads it with numpy alone. Returns
+        the path written (``.npz`` appended unless ``path`` ends in it)."""
+        b = self.basis
+        arrays = {"parametric_structure": np.array(json.dumps(self.structure.as_dict())),
+                  "scheme": np.array(self.scheme.spec), "dt": np.array(float(self.dt)),
+                  "mu_train": np.asarray(self.mu_train, dtype=float), "V": b.V,
+                  "report": np.array(json.dumps(plain(self.report)))}
+        if b.weight is not None or b.dual is not None:
+            arrays["dual"] = np.ascontiguousarray(b.projector().T)
+        for op in OPERATORS:
+            for i, A in enumerate(self.terms.get(op, [])):
+                arrays[f"term__{op}__{i}"] = np.asarray(A, dtype=float)
+        return atomic_savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path) -> "ParametricModel":
+        """Read a file written by :meth:`save`. Raises
+        :class:`~dolfinx_lopinf.errors.FileFormatError` naming the file when it is not such a
+        file (another kind of file, missing or damaged entries, terms that do not fit the
+        structure), and ``FileNotFoundError`` when it does not exist."""
+        with open_npz(path, "parametric model (ParametricModel.save)") as (data, read):
+            missing = [k for k in ("parametric_structure", "scheme", "dt", "mu_train", "V")
+                       if k not in data.files]
+            if missing:
+                raise FileFormatError(f"{path}: lacks {missing} (entries found: "
+                                      f"{sorted(data.files)}); not a file written by "
+                                      "ParametricModel.save (a lo.fit model? use "
+                                      "lo.ReducedModel.load)")
+            entries = {k: read(k) for k in data.files}
+        try:
+            structure = AffineStructure.from_dict(json.loads(str(entries["parametric_structure"])))
+            report = json.loads(str(entries["report"])) if "report" in entries else {}
+            V = entries["V"]
+            dual = entries.get("dual")
+            if V.ndim != 2 or not np.all(np.isfinite(V)) or (
+                    dual is not None and (dual.shape != V.shape or not np.all(np.isfinite(dual)))):
+                raise InputError(f"the basis V {V.shape} (and its W V) must be a finite (n, r) "
+                                 "array")
+            basis = Basis(V, {}, {"all": (np.arange(V.shape[0]), np.arange(V.shape[1]))},
+                          None, dual)
+            terms = {op: [entries[k] for k in sorted(
+                (k for k in entries if k.startswith(f"term__{op}__")),
+                key=lambda k: int(k.rsplit("__", 1)[1]))] for op in OPERATORS}
+            for op, mats in terms.items():
+                for A in mats:
+                    if A.ndim != 2 or A.shape[0] != V.shape[1] or not np.all(np.isfinite(A)):
+                        raise InputError(f"a {op} term of shape {A.shape} does not fit r = "
+                                         f"{V.shape[1]} (or is not finite)")
+            dt = float(entries["dt"])
+            if not (np.isfinite(dt) and dt > 0):
+                raise InputError(f"dt must be a positive number, got {dt}")
+            return cls.from_operators(structure, basis, str(entries["scheme"]), dt, terms,
+                                      entries["mu_train"], report)
+        except (InputError, ValueError, KeyError, TypeError) as exc:
+            raise FileFormatError(f"{path}: the stored parametric model is invalid: {exc}") from None
 
     @classmethod
     def from_operators(cls, structure, basis, scheme, dt, terms: dict, mu_train=None,

@@ -11,6 +11,8 @@ import subprocess
 import sys
 import warnings
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -142,6 +144,33 @@ def test_unseen_parameter_prediction_matches_the_truth(model, truth):
     ref = _trajectory(*_operators(truth, *mu), _load(5))
     pred = model.predict(mu, n_steps=300, inputs=ref.U)
     assert np.abs(pred.Qh - ref.Q).max() <= 1e-7 * np.abs(ref.Q).max()
+
+
+def test_save_load_gives_the_same_model(model, data, tmp_path):
+    """A parametric model in one file, read back with numpy alone: the same operators at any
+    mu, the same predictions, the same projection (a weighted basis keeps its W V)."""
+    back = par.ParametricModel.load(model.save(tmp_path / "pm"))
+    assert back.structure == model.structure and back.scheme == model.scheme
+    assert back.dt == model.dt and np.array_equal(back.mu_train, model.mu_train)
+    mu = (1.7, 1.2)
+    for A, B in zip(back.operators(mu), model.operators(mu)):
+        assert (A is None and B is None) or np.array_equal(A, B)
+    u = _load(5)
+    assert np.array_equal(back.predict(mu, n_steps=50, inputs=u).Qh,
+                          model.predict(mu, n_steps=50, inputs=u).Qh)
+    assert back.report["certificate"]["duality_gap"] == model.report["certificate"]["duality_gap"]
+    W = np.diag(np.linspace(1.0, 2.0, N))  # a weighted basis projects with W V after loading
+    weighted = replace(model, basis=Basis(np.diag(1 / np.sqrt(np.diag(W))), {},
+                                          {"all": (np.arange(N), np.arange(N))}, W))
+    again = par.ParametricModel.load(weighted.save(tmp_path / "pmw"))
+    q = np.arange(1.0, N + 1)
+    assert np.allclose(again.basis.project(q), weighted.basis.project(q), rtol=0, atol=1e-14)
+    (tmp_path / "junk.npz").write_bytes(b"not a model")
+    with pytest.raises(lo.errors.FileFormatError, match="junk"):
+        par.ParametricModel.load(tmp_path / "junk.npz")
+    np.savez(tmp_path / "other.npz", K=np.eye(2))
+    with pytest.raises(lo.errors.FileFormatError, match="not a file written by ParametricModel"):
+        par.ParametricModel.load(tmp_path / "other.npz")
 
 
 def test_free_response_outside_the_range_keeps_its_energy_bounded(model):
