@@ -68,6 +68,13 @@ class Basis:
             return self.dual.T
         return self.V.T
 
+    def saved_dual(self) -> np.ndarray | None:
+        """(n, r) W V for a model file (the projection of a weighted basis without the n x n
+        W: :attr:`dual`), None for a Euclidean basis (V itself projects)."""
+        if self.weight is None and self.dual is None:
+            return None
+        return np.ascontiguousarray(self.projector().T)
+
     def project(self, Q: np.ndarray) -> np.ndarray:
         """Reduced coordinates Qh = V^T W Q (W = I for Euclidean POD), (r, K) from (n, K)."""
         Q = as_real_array(Q, "Q")

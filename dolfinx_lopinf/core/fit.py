@@ -177,8 +177,7 @@ class ReducedModel:
         rom = LagrangianROM(K=self.rom.K, M=self.rom.M, C=self.rom.C, B=self.rom.B, E=self.rom.E,
                             meta=meta, scheme=self.rom.scheme, lagrangian=self.rom.lagrangian)
         b = self.basis  # a weighted basis projects with W V (W itself is n x n: not stored)
-        dual = b.dual if b.weight is None else b.weight @ b.V
-        return save_rom(path, rom, basis_rows=b.V, rows=np.arange(b.n), basis_dual=dual)
+        return save_rom(path, rom, basis_rows=b.V, rows=np.arange(b.n), basis_dual=b.saved_dual())
 
     @classmethod
     def load(cls, path) -> "ReducedModel":

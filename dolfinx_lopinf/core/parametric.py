@@ -414,8 +414,9 @@ class ParametricModel:
                   "scheme": np.array(self.scheme.spec), "dt": np.array(float(self.dt)),
                   "mu_train": np.asarray(self.mu_train, dtype=float), "V": b.V,
                   "report": np.array(json.dumps(plain(self.report)))}
-        if b.weight is not None or b.dual is not None:
-            arrays["dual"] = np.ascontiguousarray(b.projector().T)
+        dual = b.saved_dual()
+        if dual is not None:
+            arrays["dual"] = dual
         for op in OPERATORS:
             for i, A in enumerate(self.terms.get(op, [])):
                 arrays[f"term__{op}__{i}"] = np.asarray(A, dtype=float)

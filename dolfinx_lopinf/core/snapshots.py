@@ -288,6 +288,6 @@ def _same_weight(a, b) -> bool:
         return True
     import scipy.sparse as sp
 
-    diff = abs(sp.csr_array(a) - sp.csr_array(b))
-    top = abs(sp.csr_array(a)).max()
-    return bool(diff.max() <= 1e-12 * top) if diff.nnz else True
+    a = sp.csr_array(a)
+    diff = abs(a - sp.csr_array(b))
+    return bool(diff.max() <= 1e-12 * abs(a).max()) if diff.nnz else True
