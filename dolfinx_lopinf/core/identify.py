@@ -370,7 +370,8 @@ def _refinements(residual: Residual, rho: dict):
 
     HHT's alpha and generalised-alpha's rho_inf (one parameter each) from their best grid
     member; then (alpha_m, alpha_f) with the optimal beta, gamma; with loads also Newmark's
-    (beta, gamma) and all four generalised-alpha parameters (only the loads show them)."""
+    (beta, gamma) and all four generalised-alpha parameters (only the loads show them, and
+    only through u: on recorded (u, v, a) the relation has no beta, gamma)."""
     def best(kind):
         pool = [m for m in rho if type(m) is kind]
         return min(pool, key=rho.get) if pool else None
@@ -399,7 +400,9 @@ def _refinements(residual: Residual, rho: dict):
         nm = best(S.Newmark)
         out.append((2, _fit(residual, lambda x: S.Newmark(x[0], x[1]), [nm.beta, nm.gamma],
                             [0.0, 0.5], [1.0, 1.5])))
-    if residual.forced:
+    if residual.forced and not residual.states:  # on recorded (u, v, a) the relation holds
+        # alpha_m and alpha_f alone (GeneralizedAlpha.state_relation): beta, gamma would be
+        # dead parameters, and the fit the two-parameter one at twice its evaluations
         g = two[0] if two is not None else (ga or S.GeneralizedAlpha(rho_inf=0.8))
         out.append((4, _fit(residual, lambda x: S.GeneralizedAlpha(*x),
                             [g.alpha_m, g.alpha_f, g.beta, g.gamma], [-1.0, 0.0, 0.0, 0.5],

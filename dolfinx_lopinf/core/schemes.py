@@ -49,6 +49,7 @@ your loop applied, at the time it applied it, and a jump costs nothing).
 
 from __future__ import annotations
 
+import functools
 import re
 
 import numpy as np
@@ -508,6 +509,14 @@ def kinks(U) -> np.ndarray:
     return flag
 
 
+@functools.lru_cache(maxsize=16)
+def _kinks_of(data: bytes, shape) -> np.ndarray:
+    """:func:`kinks` of the float64 array with these bytes and shape (read-only, cached)."""
+    out = kinks(np.frombuffer(data, dtype=float).reshape(shape))
+    out.setflags(write=False)
+    return out
+
+
 #: a second difference this many times the median one marks a bend or jump of the load
 KINK_FACTOR = 50.0
 
@@ -542,7 +551,7 @@ def sample_inputs(U, input_times, at, *, outside: str = "raise", bends: str = "n
     F = U[:, k] * (1 - w) + U[:, k + 1] * w
     F[:, out] = np.nan
     if outside == "nan" and bends == "nan":
-        bent = kinks(U)
+        bent = _kinks_of(U.tobytes(), U.shape)  # the identification samples one U many times
         between = (w > 0) & (w < 1)
         F[:, between & (bent[k] | bent[k + 1])] = np.nan
     return F
