@@ -346,16 +346,15 @@ class MassInteriorPoint:
 
 
 def _jammed(best, trace, gap_tol) -> bool:
-    """A run that ended uncertified with its steps collapsed (the last STALL_RUN shorter than
-    STALL_STEP) or with no step at all: the iteration jammed against a cone's boundary, not a
-    converged point the certificate could not resolve. Measured on the 295 distinct
-    learned-mass problems of lo.fit on the 14 held-out loop recordings (weighted and Euclidean
-    POD, r = 8, 12, 20) and the benchmark's five kinds (r = 2 .. 20): from START_SPREAD one run
-    jams (near-exact beam data, r = 4, undamped: steps 2e-2, 6e-4, 1e-5 .. at a gap estimate of
-    4e-2); from SAFE_SPREAD it certifies."""
-    uncertified = best is None or not best["duality_gap"] <= gap_tol
+    """A run that ended uncertified short of the optimum: its gap estimate above STALL_GAP
+    gap_tol (:func:`_stalled`'s jam), or its steps collapsed (the last STALL_RUN shorter than
+    STALL_STEP), or no step at all - not a converged point the certificate could not resolve."""
+    if best is not None and best["duality_gap"] <= gap_tol:
+        return False
+    if not trace:
+        return True
     collapsed = len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
-    return uncertified and (not trace or collapsed)
+    return collapsed or not trace[-1][2] <= STALL_GAP * gap_tol
 
 
 def _stalled(trace, est, gap_tol) -> bool:
