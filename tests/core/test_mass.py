@@ -301,6 +301,55 @@ def test_a_jam_stops_at_any_level_but_a_plateau_with_a_falling_misfit_does_not()
     assert not fractional._stalled(falling, falling[-1][2], gap_tol)
 
 
+def test_the_start_keeps_the_unconstrained_spectra_above_the_spread():
+    """fractional.start: the stiffness and damping blocks of the unconstrained minimiser for
+    M_0 = I / tr W keep their eigenvalues (absolute values) above START_SPREAD times the
+    largest, and only those below are lifted; SAFE_SPREAD lifts everything below its spread."""
+    p = _prepared(3).problem
+    ix = p.index
+    for spread in (fractional.START_SPREAD, fractional.SAFE_SPREAD):
+        X = ix.blocks(fractional.start(p, spread))
+        for k in range(1, p.n_blocks):
+            w = np.linalg.eigvalsh(X[k])
+            assert w[0] >= spread * w[-1] * (1 - 1e-12)
+    tight = np.linalg.eigvalsh(ix.blocks(fractional.start(p))[1])
+    safe = np.linalg.eigvalsh(ix.blocks(fractional.start(p, fractional.SAFE_SPREAD))[1])
+    keep = tight >= fractional.SAFE_SPREAD * tight[-1]  # above both floors: the same eigenvalues
+    assert np.allclose(tight[keep], safe[keep], rtol=1e-10)
+    assert (safe >= tight * (1 - 1e-12)).all()
+
+
+def test_a_jam_is_run_again_from_the_cautious_start_and_the_better_certificate_kept(monkeypatch):
+    """MassInteriorPoint.solve: a run that ends uncertified with collapsed steps (or its
+    estimate far above the tolerance) is run again from start(p, SAFE_SPREAD); the answer is
+    the better of the two, its iterations the sum. A run stopped by a certificate that could
+    not resolve a converged point (estimate below STALL_GAP gap_tol, steps long) is not."""
+    tol = 1e-8
+    jam = [(0.9, 0.1, 1.0, 1.0)] * 3 + [(2e-2, 0.5, 4e-2, 2e-2), (6e-4, 0.5, 4e-2, 2e-2), (1e-5, 0.5, 4e-2, 2e-2)]
+    assert fractional._jammed({"duality_gap": 4e-2}, jam, tol)
+    assert fractional._jammed(None, [], tol)  # a numerical failure at the first step
+    high = [(0.6, 0.5, 3e-5, 1.0)] * 4  # stalled with the estimate above STALL_GAP gap_tol
+    assert fractional._jammed({"duality_gap": 1e-3}, high, tol)
+    resolved = [(0.9, 0.1, 1e-12, 1.0)] * 4  # converged; the certificate could not resolve it
+    assert not fractional._jammed({"duality_gap": 2e-8}, resolved, tol)
+    assert not fractional._jammed({"duality_gap": 1e-9}, jam, tol)  # certified: nothing to redo
+
+    p = _prepared(2).problem
+    real, starts = fractional._run_numpy, []
+
+    def first_jams(problem, xs, gap_tol, max_iter):
+        starts.append(np.array(xs))
+        if len(starts) == 1:
+            return xs, np.zeros((problem.r, problem.L.shape[0])), 1.0, 6, None, "stalled at iteration 6", jam
+        return real(problem, xs, gap_tol, max_iter)
+
+    monkeypatch.setattr(fractional, "_run_numpy", first_jams)
+    xs, Y, tau, cert = fractional.MassInteriorPoint(backend="numpy").solve(p)
+    assert len(starts) == 2 and np.array_equal(starts[1], fractional.start(p, fractional.SAFE_SPREAD))
+    assert cert.converged and cert.details["stopped"] == "certified (second start)"
+    assert cert.iterations == 6 + len(cert.details["trace"])
+
+
 def test_a_certificate_that_stops_improving_ends_the_run_but_a_late_one_does_not():
     """fractional._proof_stalled on the best certified gap after each attempt: flat over
     STALL_FLAT attempts stops; the sequence of a held-out fit that certified at its eleventh

@@ -83,6 +83,27 @@ def test_midpoint_relation_and_step():
     assert np.linalg.norm(M @ Qm + C @ Qc + K @ Qk - B @ Uf) <= 1e-11 * np.linalg.norm(M @ Qm)
 
 
+def test_no_four_parameter_refinement_on_recorded_states():
+    """On recorded (u, v, a) the relation holds alpha_m and alpha_f alone (state_relation), so
+    the refinements stop at two parameters (beta, gamma would be dead ones, their forward
+    differences evaluations thrown away); on u alone with loads the four-parameter fit runs."""
+    from dolfinx_lopinf.core.identify import Residual, _refinements
+
+    M, C, K, B = _system(3, m=1)
+    truth, dt, n = S.GeneralizedAlpha(0.2, 0.4), 0.01, 300
+    rom = lo.core.LagrangianROM(K=K, C=C, B=B, scheme=truth)
+    load = (lambda t: np.array([np.sin(2 * t) + (t > 1.0)]))
+    tr = rom.simulate(np.ones(4), np.zeros(4), dt, n, inputs=load, backend="numpy")
+    t = dt * np.arange(n + 1)
+    t_load = np.union1d(t, t[:-1] + truth.tau * dt)
+    U = np.array([load(s) for s in t_load]).T
+    for pieces, most in (([(tr.Qh, t, U, t_load, tr.Vh, tr.Ah)], 2), ([(tr.Qh, t, U, t_load, None, None)], 4)):
+        residual = Residual(pieces)
+        rho = {m: residual(m) for m in (truth, S.Newmark(), S.HHT(0.1))}
+        sizes = [n_params for n_params, *_ in _refinements(residual, rho)]
+        assert sizes and max(sizes) == most, sizes
+
+
 @pytest.mark.parametrize("truth", [S.HHT(0.17), S.GeneralizedAlpha(rho_inf=0.73),
                                    S.GeneralizedAlpha(0.12, 0.31, 0.42, 0.72), S.Newmark(0.3, 0.6)],
                          ids=lambda s: s.spec)
