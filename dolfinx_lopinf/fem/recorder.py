@@ -176,7 +176,7 @@ class SnapshotRecorder:
     def __len__(self) -> int:
         return len(self._times)
 
-    def _local(self, f, name):
+    def _local(self, f, name, t=None):
         """(array, problem): the local dof array of a Function/array, or why it is refused."""
         if isinstance(f, dolfinx.fem.Function):
             W = f.function_space
@@ -196,8 +196,15 @@ class SnapshotRecorder:
         if arr.shape[0] not in (self._n_owned, self._n_local):
             return None, (f"{name} has {arr.shape[0]} local entries; expected {self._n_owned} "
                           f"(owned) or {self._n_local} (owned + ghosts)")
-        if not np.all(np.isfinite(arr[: self._n_owned])):
-            return None, f"the {name} recorded at this time contains NaN or inf"
+        bad = np.flatnonzero(~np.isfinite(arr[: self._n_owned]))
+        if bad.size:
+            imap, bs = self.V.dofmap.index_map, self.V.dofmap.index_map_bs
+            first = int(bad[0])
+            where = f"t = {t:g}" if isinstance(t, float) else "this time"
+            return None, (f"the {name} recorded at {where} contains {bad.size} NaN or inf "
+                          f"value(s) on rank {self.V.mesh.comm.rank}, first at dof "
+                          f"{imap.local_range[0] * bs + first} (global, block size {bs}): the "
+                          "loop diverged or the solve failed before this step")
         return arr, None
 
     def record(self, t: float, u, *, velocity=None, inputs=None, input_time=None) -> None:
@@ -224,17 +231,17 @@ class SnapshotRecorder:
                 problem = f"t must be finite, got {t}"
         except (TypeError, ValueError):
             problem = f"t must be a number, got {t!r}"
-        arr, p = self._local(u, "u")
+        arr, p = self._local(u, "u", t if problem is None else None)
         problem = problem or p
         vel = acc = tu = None
         if velocity is not None and "velocity" in self._fields:
             problem = problem or ("velocity was given to the recorder (SnapshotRecorder(u, "
                                   "velocity=v)) and to record(); give it once")
         elif velocity is not None or "velocity" in self._fields:
-            vel, p = self._local(self._fields.get("velocity", velocity), "velocity")
+            vel, p = self._local(self._fields.get("velocity", velocity), "velocity", t)
             problem = problem or p
         if "acceleration" in self._fields:
-            acc, p = self._local(self._fields["acceleration"], "acceleration")
+            acc, p = self._local(self._fields["acceleration"], "acceleration", t)
             problem = problem or p
         problem = problem or self._time_problem(t)
         if inputs is not None and problem is None:

@@ -196,6 +196,22 @@ def test_recorder_record_is_all_or_nothing():
     assert snaps.Q.shape[1] == snaps.V.shape[1] == snaps.U.shape[1] == snaps.Y.shape[1] == 2
 
 
+def test_a_nan_state_is_named_by_time_and_dof():
+    """A diverged loop's state: the recorder's refusal names the time, how many values, the
+    rank and the first dof (global) - not only "at this time"."""
+    V = _p1()
+    u = dolfinx.fem.Function(V)
+    rec = lo.SnapshotRecorder(u)
+    rec.record(0.0, u)
+    u.x.array[3] = np.nan
+    owned = V.dofmap.index_map.size_local
+    first = V.dofmap.index_map.local_range[0] + 3
+    with pytest.raises(InputError, match=rf"u recorded at t = 0.25 contains 1 NaN or inf value\(s\) "
+                                         rf"on rank 0, first at dof {first} \(global") as info:
+        rec.record(0.25, u)
+    assert owned > 3 and "diverged" in str(info.value) and len(rec) == 1
+
+
 # -- items 10 and 11: checkpoints ------------------------------------------------------------
 
 def _written_bytes():
