@@ -594,7 +594,16 @@ def _predictions(pieces, members, rho, best_rho, refined, holdout, loads="genera
     residuals of members the data cannot tell apart differ only by how the truncated modes'
     closure enters them (in a mass-orthonormal basis Newmark's beta = 1/4 came out 57x
     above central differences on loads linear between bends, and the loop was Newmark)."""
-    if not holdout:
+    shortlist = [m for m in members if _class_best(m, rho, loads) <= SHORTLIST * best_rho]
+    return held_back_errors(pieces, shortlist + [c for _, c, _, _ in refined], holdout)
+
+
+def held_back_errors(pieces, candidates, holdout) -> dict:
+    """{scheme: held-back prediction error} of each candidate's free operators (M = I; C, K, B
+    unconstrained) fitted on the first 1 - ``holdout`` of every trajectory and run on the rest
+    with its recurrence (inf where useless or failed); {} when the data are too short to hold
+    back or no candidate predicts."""
+    if not holdout or not pieces:
         return {}
     try:
         fit_part, held = split(pieces, holdout)
@@ -602,9 +611,8 @@ def _predictions(pieces, members, rho, best_rho, refined, holdout, loads="genera
     except (InputError, ValueError):
         return {}
     dt = float(np.mean(np.diff(pieces[0][1])))
-    shortlist = [m for m in members if _class_best(m, rho, loads) <= SHORTLIST * best_rho]
     out = {}
-    for cand in shortlist + [c for _, c, _, _ in refined]:
+    for cand in candidates:
         try:
             ops = fitted.free_operators(cand)
             with np.errstate(all="ignore"):
