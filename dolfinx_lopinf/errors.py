@@ -100,8 +100,10 @@ class NonLagrangianWarning(LOpInfWarning, RuntimeWarning):
 
 
 class SchemeMismatchWarning(LOpInfWarning):
-    """The integrator the caller named fits the data clearly worse than another scheme; the
-    message names the better one."""
+    """The integrator the caller named does not match the recording: another scheme fits the
+    data clearly better (the message names it), or the named one fits clearly better with the
+    recorded input times moved (loads recorded at other times than the loop applied them:
+    the message gives the shift)."""
 
 
 class PoorPredictionWarning(LOpInfWarning):
