@@ -53,8 +53,8 @@ from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
 from .basis import Basis, from_svd, leading_svd, pod, weighted_svd
 from ._checks import as_real_array, check_finite, check_int
-from ..errors import (FileFormatError, InputError, PoorPredictionWarning, SchemeMismatchWarning,
-                      warn)
+from ..errors import (FileFormatError, InputError, PoorPredictionWarning, RankDeficientDataError,
+                      SchemeMismatchWarning, warn)
 from .identify import (PREDICTION_FLOOR, REFINEMENT_GAIN, RESIDUAL_FLOOR, SHORTLIST, Residual,
                        _class_best, _equivalent, _load_kind, held_back_errors, identify,
                        standard_members)
@@ -522,16 +522,29 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
             report["why"] += (f"; the most standard scheme the data allow ({conservative}), "
                               f"unless another predicts {REFINEMENT_GAIN:g}x better (best other "
                               f"{others:.3g}): the loads do not show where the loop samples them")
-        if not errors[chosen] <= HELD_BACK_WARN:
+        unscored = not np.isfinite(min(errors.values()))  # every candidate failed: the final
+        # fit below raises the reason (a warning about "the chosen model" first misled)
+        if not errors[chosen] <= HELD_BACK_WARN and not unscored:
             _warn_poor_prediction(errors[chosen], _label(*chosen), len(order), holdout)
     else:
-        chosen, factors = order[0], {}
+        chosen, factors, unscored = order[0], {}, False
         report["why"] = "mass, damping and scheme given: nothing to compare"
     mass, damping, relation = chosen
+    relation = _with_recorded_kinematics(relation, pieces, report, explicit=requested != "auto")
     # the recipe that was scored: a learned mass certified with a raised ridge is refitted
     # from that ridge on (a first fit at the default ridge would stall again, at a full fit's cost)
-    ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass,
-                        ridge_factor=factors.get(chosen, 1.0))
+    try:
+        ops = _fit_relation(relation, pieces, damping, eps, ridge, strict, mass,
+                            ridge_factor=factors.get(chosen, 1.0))
+    except RankDeficientDataError as exc:
+        if "'U[" not in str(exc):
+            raise
+        raise RankDeficientDataError(
+            f"{exc}. Loads that are zero throughout (an unforced run recorded with "
+            "inputs=[0.0]) cannot show how the loads enter: fit such a trajectory together "
+            "with forced ones, or record it without inputs") from None
+    if unscored:
+        _warn_poor_prediction(float("inf"), _label(*chosen), len(order), holdout)
     E = None
     if trajs[0].Y is not None:
         E = infer_output(np.hstack([p[0] for p in pieces]), np.hstack([s.Y for s in trajs]))
@@ -729,6 +742,84 @@ def _load_shift(scheme, pieces, named):
             best = round(float(sol.x), 2)
             values[best] = float(sol.fun)
     return float(best), float(values[best])
+
+
+#: recorded (u, v, a) whose Newmark updates hold to this (relative) fix beta and gamma
+KINEMATICS_TOL = 1e-8
+
+
+def _recorded_kinematics(pieces):
+    """(beta, gamma, residual): the Newmark updates
+
+        u_{n+1} = u_n + dt v_n + dt^2 ((1/2 - beta) a_n + beta a_{n+1}),
+        v_{n+1} = v_n + dt ((1 - gamma) a_n + gamma a_{n+1}),
+
+    fitted by least squares to the recorded (u, v, a) of every trajectory (exact in any
+    linear projection of them), the residual the larger relative one; None without them."""
+    du, eu, dv, ev, su, sv = [], [], [], [], [], []
+    for Qh, times, _, _, Vh, Ah in pieces:
+        if Vh is None or Ah is None or Qh.shape[1] < 3:
+            return None
+        dt = float(np.mean(np.diff(times)))
+        da = Ah[:, 1:] - Ah[:, :-1]
+        du.append((Qh[:, 1:] - Qh[:, :-1] - dt * Vh[:, :-1] - 0.5 * dt**2 * Ah[:, :-1]).ravel())
+        eu.append((dt**2 * da).ravel())
+        dv.append((Vh[:, 1:] - Vh[:, :-1] - dt * Ah[:, :-1]).ravel())
+        ev.append((dt * da).ravel())
+        su.append((Qh[:, 1:] - Qh[:, :-1]).ravel())
+        sv.append((Vh[:, 1:] - Vh[:, :-1]).ravel())
+    du, eu, dv, ev, su, sv = (np.concatenate(x) for x in (du, eu, dv, ev, su, sv))
+    if not (eu @ eu > 0 and ev @ ev > 0):
+        return None
+    beta, gamma = float(du @ eu / (eu @ eu)), float(dv @ ev / (ev @ ev))
+    tiny = np.finfo(float).tiny
+    res = max(np.linalg.norm(du - beta * eu) / max(np.linalg.norm(su), tiny),
+              np.linalg.norm(dv - gamma * ev) / max(np.linalg.norm(sv), tiny))
+    return _simple(beta), _simple(gamma), float(res)
+
+
+def _simple(x: float) -> float:
+    """x as the nearest fraction with a denominator up to 12 where within 1e-9 of it."""
+    for den in range(1, 13):
+        k = round(x * den)
+        if abs(x - k / den) <= 1e-9:
+            return k / den
+    return x
+
+
+def _with_recorded_kinematics(relation, pieces, report, explicit: bool):
+    """A Newmark-family relation with the beta, gamma that the recorded (u, v, a) obey (their
+    updates hold to KINEMATICS_TOL): on (u, v, a) the balance alone is fitted, which holds no
+    beta, gamma, so an explicit central-difference loop and average acceleration fit alike and
+    the ROM's stepping came from the first of them in the list. A named scheme is kept, with a
+    SchemeMismatchWarning when its beta, gamma contradict the records."""
+    if not isinstance(relation, schemes.GeneralizedAlpha):
+        return relation
+    kin = _recorded_kinematics(pieces)
+    if kin is None or not kin[2] <= KINEMATICS_TOL:
+        return relation
+    beta, gamma, res = kin
+    report.setdefault("identification", {})["kinematics"] = {"beta": beta, "gamma": gamma,
+                                                             "residual": res}
+    if abs(beta - relation.beta) <= 1e-9 and abs(gamma - relation.gamma) <= 1e-9:
+        return relation
+    am, af = relation.alpha_m, relation.alpha_f
+    if am == 0.0 and af == 0.0:
+        found = schemes.CentralDifference() if (beta, gamma) == (0.0, 0.5) else schemes.Newmark(beta, gamma)
+    else:
+        found = schemes.GeneralizedAlpha(am, af, beta, gamma)
+    if explicit:
+        warn(f"scheme={relation.spec}: the recorded velocities and accelerations follow the "
+             f"Newmark updates with beta={beta:g}, gamma={gamma:g} (to {res:.1g}), not the named "
+             f"scheme's beta={relation.beta:g}, gamma={relation.gamma:g}; consider "
+             f"scheme={found.spec!r}", SchemeMismatchWarning)
+        return relation
+    note = (f"{relation.spec} -> {found.spec}: the recorded (u, v, a) obey the Newmark updates "
+            f"with beta={beta:g}, gamma={gamma:g} to {res:.1g} (the balance fitted on them holds "
+            "no beta, gamma)")
+    report["identification"]["why_kinematics"] = note
+    report["why"] = f"{report.get('why', '')}; {note}".lstrip("; ")
+    return found
 
 
 def _leading(pieces, r):

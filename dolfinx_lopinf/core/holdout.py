@@ -52,11 +52,12 @@ def split(pieces, holdout):
     """(fit parts, held-back parts): the first 1 - holdout of every trajectory, and the rest
     with the samples before it that start a four-point recurrence."""
     fit_part, held = [], []
-    for Qh, times, U, ti, Vh, Ah in pieces:
+    for i, (Qh, times, U, ti, Vh, Ah) in enumerate(pieces):
         K = Qh.shape[1]
         k_cut = int(round((1 - holdout) * K))
         if k_cut < 17 or K - k_cut < 4:
-            raise InputError(f"a trajectory of {K} samples is too short to compare models on a "
+            which = f"snapshots[{i}]" if len(pieces) > 1 else "the trajectory"
+            raise InputError(f"{which} has {K} samples: too short to compare models on a "
                              f"held-back {holdout:.0%} (it needs >= 17 samples before and 4 after "
                              "the cut); record longer, or pass scheme=, mass= and damping= to "
                              "skip the comparison")

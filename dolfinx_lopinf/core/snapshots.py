@@ -47,7 +47,7 @@ class Snapshots:
         Q: (n, K) states; column k is the state at ``times[k]``.
         blocks: name -> row indices of Q for physically different parts of the state.
         V: (n, K) velocities, or None.
-        U: (m, K_u) inputs, or None.
+        U: (m, K_u) inputs ((K_u,): one input), or None.
         Y: (p, K) outputs, or None.
         energy: (K,) FOM energy, or None.
         output_times: (K_y,) times of ``Y`` when outputs are recorded on their own grid
@@ -125,6 +125,8 @@ class Snapshots:
                 raise InputError(f"{name} has shape {value.shape}; it must be {want} (one "
                                  f"column per sample time)")
             check_finite(value, name)
+            if name == "U" and value.ndim == 1:  # one input channel, as predict(inputs=) takes it
+                value = value[None, :]
             object.__setattr__(self, name, value)
         ty = None
         if self.output_times is not None:

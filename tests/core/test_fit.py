@@ -160,6 +160,9 @@ def test_bad_trajectory_lists_are_named():
         lo.fit([a, lo.Snapshots(a.times, a.Q[:5], U=a.U)], 3)
     with pytest.raises(lo.errors.InputError, match="not a Snapshots"):
         lo.fit([a.Q], 4)
+    short = lo.Snapshots(a.times[:10], a.Q[:, :10], U=a.U[:, :10], Y=a.Y[:, :10])
+    with pytest.raises(lo.errors.InputError, match=r"snapshots\[1\] has 10 samples: too short"):
+        lo.fit([a, short], 4)
     broken = lo.Snapshots(a.times, a.Q.copy(), U=a.U.copy(), Y=a.Y.copy())
     broken.Q[2, 7] = np.nan  # written after the Snapshots were built: lo.fit checks again
     with pytest.raises(lo.errors.InputError, match=r"snapshots\.Q contains 1 non-finite.*\(2, 7\)"):
@@ -460,3 +463,42 @@ def test_the_standard_member_beside_a_refinement_is_the_nearest_in_the_residual(
                                                                                 "loads": "general"}))
     _, ident = fit_module._relation_for("auto", [(np.zeros((4, 10)), np.arange(10.0), None, None, None, None)], 4)
     assert ident["best_member"] == own.spec
+
+
+def test_recorded_velocities_and_accelerations_fix_beta_and_gamma():
+    """An explicit central-difference loop recorded with (u, v, a): the balance fitted on
+    them is average acceleration's too (no beta, gamma in it), and the Newmark updates of
+    the records decide - beta = 0, gamma = 1/2 to rounding. lo.fit returns central
+    differences (it returned newmark(0.25, 0.5), the first in the list); Newmark named on
+    the same records is kept, with a SchemeMismatchWarning naming beta = 0; the 1-D input
+    array is one channel."""
+    K, C, B = _system(4)
+    dt, n = 0.01, 600
+    tr = lo.core.LagrangianROM(K=K, C=C, B=B, scheme="central_difference").simulate(
+        np.array([1.0, 0.0, 0.5, 0.0]), np.zeros(4), dt, n, inputs=_load)
+    t = dt * np.arange(n + 1)
+    snaps = lo.Snapshots(t, EMBED @ tr.Qh, V=EMBED @ tr.Vh, A=EMBED @ tr.Ah,
+                         U=np.array([_load(s)[0] for s in t]))
+    assert snaps.U.shape == (1, n + 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = lo.fit(snaps, 4)
+    kin = model.report["identification"]["kinematics"]
+    assert model.scheme == lo.schemes.CentralDifference(), model.report["why"]
+    assert (kin["beta"], kin["gamma"]) == (0.0, 0.5) and kin["residual"] < 1e-12
+    with pytest.warns(SchemeMismatchWarning, match=r"beta=0, gamma=0.5"):
+        named = lo.fit(snaps, 4, scheme="newmark")
+    assert named.scheme == lo.schemes.Newmark()
+
+
+def test_an_unforced_run_with_zero_loads_is_refused_without_a_warning_about_a_model():
+    """inputs=[0.0] at every step of an unforced run: no input matrix can be fitted, so
+    RankDeficientDataError with the lo.fit-level advice - and no PoorPredictionWarning about
+    a "chosen model" first (every candidate failed; none was chosen)."""
+    t = np.arange(400) * 0.01
+    snaps = lo.Snapshots(t, np.vstack([np.cos(t), np.sin(t), np.cos(2 * t)]), U=np.zeros((1, t.size)))
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        with pytest.raises(lo.errors.RankDeficientDataError, match="together with forced ones"):
+            lo.fit(snaps, 3)
+    assert not [w for w in seen if issubclass(w.category, lo.errors.PoorPredictionWarning)]
