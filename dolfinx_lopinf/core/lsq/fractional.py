@@ -106,8 +106,8 @@ SHIFTS = (0.0, 1e-12, 1e-10, 1e-8)
 #: the start's slack eigenvalues are floored at START_SPREAD times the largest: the unconstrained
 #: minimiser's stiffness and damping spectra kept (a floor of 1e-3 raised a Newmark loop's low
 #: modes by orders: a start misfit 1e12 times the optimum's, 43 iterations at r = 20, 27 from
-#: this start); a run from it that jams short of the optimum (gap estimate above STALL_GAP
-#: gap_tol) is run again from SAFE_SPREAD, the better certificate kept (MassInteriorPoint.solve)
+#: this start); a run from it that jams (its steps collapsed: _jammed) is run again from
+#: SAFE_SPREAD, the better certificate kept (MassInteriorPoint.solve)
 START_SPREAD, SAFE_SPREAD = 1e-9, 1e-3
 
 
@@ -346,15 +346,20 @@ class MassInteriorPoint:
 
 
 def _jammed(best, trace, gap_tol) -> bool:
-    """A run that ended uncertified short of the optimum: its gap estimate above STALL_GAP
-    gap_tol (:func:`_stalled`'s jam), or its steps collapsed (the last STALL_RUN shorter than
-    STALL_STEP), or no step at all - not a converged point the certificate could not resolve."""
+    """A run that ended uncertified with its steps collapsed (the last STALL_RUN shorter than
+    STALL_STEP) or with no step at all: the iteration jammed against a cone's boundary, not a
+    converged point the certificate could not resolve. Measured on the 295 distinct
+    learned-mass problems of lo.fit on the 14 held-out loop recordings (weighted and Euclidean
+    POD, r = 8, 12, 20) and the benchmark's five kinds (r = 2 .. 20): from START_SPREAD one run
+    jams (near-exact beam data, r = 4, undamped: steps 2e-2, 6e-4, 1e-5 .. at a gap estimate of
+    4e-2); from SAFE_SPREAD it certifies. A run stalled with its estimate far above the
+    tolerance but its steps long is not run again: on those problems the second start
+    certified none of them, and cost a Newmark loop's lo.fit at r = 20 0.3 s (0.83 -> 1.14 s)."""
     if best is not None and best["duality_gap"] <= gap_tol:
         return False
     if not trace:
         return True
-    collapsed = len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
-    return collapsed or not trace[-1][2] <= STALL_GAP * gap_tol
+    return len(trace) >= STALL_RUN and max(t[0] for t in trace[-STALL_RUN:]) < STALL_STEP
 
 
 def _stalled(trace, est, gap_tol) -> bool:
