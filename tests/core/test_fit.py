@@ -502,3 +502,17 @@ def test_an_unforced_run_with_zero_loads_is_refused_without_a_warning_about_a_mo
         with pytest.raises(lo.errors.RankDeficientDataError, match="together with forced ones"):
             lo.fit(snaps, 3)
     assert not [w for w in seen if issubclass(w.category, lo.errors.PoorPredictionWarning)]
+
+
+def test_the_report_gives_the_basis_error_on_the_training_states():
+    """report["projection_error"]: Basis.projection_error of the training states (the floor
+    the held-back errors in reduced coordinates do not show): 0 where r spans the data, the
+    basis' own figure where it does not."""
+    K, C, B = _system(5)
+    snaps = _newmark(K, C, B, 0.02, 400, np.array([1.0, 0.3, 0, 0]), _load)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        full, cut = lo.fit(snaps, 4), lo.fit(snaps, 2, damping=True, mass="identity")
+    assert full.report["projection_error"] < 1e-12
+    assert cut.report["projection_error"] > 1e-3
+    assert abs(cut.report["projection_error"] - cut.basis.projection_error(snaps.Q)) <= 1e-12
