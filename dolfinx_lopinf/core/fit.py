@@ -52,11 +52,11 @@ import scipy.optimize
 from . import compiled, lsq, schemes
 from .holdout import prediction_error, split
 from .basis import Basis, from_svd, leading_svd, pod, weighted_svd
-from ._checks import as_real_array, check_finite, check_int, fro_norm
+from ._checks import as_real_array, check_finite, check_int
 from ..errors import (FileFormatError, InputError, PoorPredictionWarning, RankDeficientDataError,
                       SchemeMismatchWarning, warn)
 from .identify import (PREDICTION_FLOOR, REFINEMENT_GAIN, RESIDUAL_FLOOR, SHORTLIST, Residual,
-                       _class_best, _equivalent, _load_kind, held_back_errors, identify,
+                       _class_best, _equivalent, _load_kind, held_back_errors, identify, leading,
                        standard_members)
 from ._blas import serial_blas, usable_cores
 from .inference import RIDGE, infer_mechanical, infer_output
@@ -481,7 +481,11 @@ def fit(snapshots, r: int, *, scheme=None, damping="auto", mass: str = "auto",
         kind = "given"
     pieces = _pieces(trajs, basis.projector())  # a loaded basis projects with its stored W V
     report = {"trajectories": len(trajs), "samples": [len(s.times) for s in trajs], "r": basis.r,
-              "dt": dt, "basis": kind, "projection_error": _training_floor(Q_all, basis, pieces),
+              "dt": dt, "basis": kind,
+              # the basis' own error on its training states: the held-back errors that choose
+              # the model are in reduced coordinates and do not see it (a wave at r = 4:
+              # held-back 3.6 %, this 54 %)
+              "projection_error": basis.projection_error(Q_all),
               "requested_scheme": requested if isinstance(requested, str) else requested.spec}
     relation, report["identification"] = _relation_for(requested, *_identification_pieces(
         trajs, svd, basis.r, weight))
@@ -674,7 +678,7 @@ def _relation_for(requested, pieces, check_r):
         # reach (a wrong member predicted in-sample 2-5x better at most on the identification's
         # data; a new user's generalised-alpha loop named Newmark: 1.7e-6 against 6.1e-8 in
         # the residual, a model 1e5 times worse on an unseen load, and no warning)
-        e = held_back_errors(_leading(pieces, check_r), [requested, best], HOLDOUT_CHECK)
+        e = held_back_errors(leading(pieces, check_r), [requested, best], HOLDOUT_CHECK)
         if e and e[requested] > PREDICTION_MISMATCH * max(e[best], PREDICTION_FLOOR):
             ident["held_back"] = {requested.spec: e[requested], best.spec: e[best]}
             warn(
@@ -712,8 +716,7 @@ LOAD_SHIFT_GAIN = 10.0
 
 def _load_shift(scheme, pieces, named):
     """(shift, residual): the load-time shift among LOAD_SHIFTS (steps; the recorded input
-    times moved by shift dt) with the least relation residual of ``scheme``, refined by a
-    parabola through it and its neighbours. On a new user's generalised-alpha loop the
+    times moved by shift dt) with the least relation residual of ``scheme``. On a new user's generalised-alpha loop the
     residual 1.6e-7 fell to 5e-9 at +1 step for a load recorded one step late, at -5 for five
     steps, near -alpha_f for a forgotten input_time=; on correct recordings of the 14 held-out
     loops the best shift gains at most 2.1x (5.3x where the loads were recorded at the state
@@ -799,8 +802,7 @@ def _with_recorded_kinematics(relation, pieces, report, explicit: bool):
     if kin is None or not kin[2] <= KINEMATICS_TOL:
         return relation
     beta, gamma, res = kin
-    report.setdefault("identification", {})["kinematics"] = {"beta": beta, "gamma": gamma,
-                                                             "residual": res}
+    report["identification"]["kinematics"] = {"beta": beta, "gamma": gamma, "residual": res}
     if abs(beta - relation.beta) <= 1e-9 and abs(gamma - relation.gamma) <= 1e-9:
         return relation
     am, af = relation.alpha_m, relation.alpha_f
@@ -820,22 +822,6 @@ def _with_recorded_kinematics(relation, pieces, report, explicit: bool):
     report["identification"]["why_kinematics"] = note
     report["why"] = f"{report.get('why', '')}; {note}".lstrip("; ")
     return found
-
-
-def _training_floor(Q, basis, pieces) -> float:
-    """||Q - V Qh||_F / ||Q||_F of the training states (Basis.projection_error, from the
-    projected pieces): the basis' own error on the data it was fitted to. The held-back errors
-    that choose the model are measured in the reduced coordinates and do not see it (a wave
-    at r = 4: held-back 3.6 %, a floor of 54 %)."""
-    Qh = np.hstack([p[0] for p in pieces])
-    denom = fro_norm(Q)
-    return float(fro_norm(Q - basis.V @ Qh) / denom) if denom > 0 else 0.0
-
-
-def _leading(pieces, r):
-    """The identification pieces in their leading ``r`` coordinates."""
-    return [(p[0][:r],) + tuple(p[1:4]) + tuple(None if a is None else a[:r] for a in p[4:])
-            for p in pieces]
 
 
 def _requested_scheme(trajs, scheme):

@@ -454,11 +454,7 @@ def identify(pieces, *, members=None, refine: bool = True, holdout: float = 0.25
               "refined": {c.spec: v for _, c, v, _ in refined}}
     loads = _load_kind(pieces)
     chosen, why = _by_residual(members, rho, refined, report, loads)
-    if check_r is not None:
-        pieces_check = [(p[0][:check_r],) + tuple(p[1:4])
-                        + tuple(None if a is None else a[:check_r] for a in p[4:]) for p in pieces]
-    else:
-        pieces_check = pieces
+    pieces_check = pieces if check_r is None else leading(pieces, check_r)
     predictions = _predictions(pieces_check, members, rho, best_rho, refined, holdout, loads)
     if predictions and not np.isfinite(predictions.get(chosen, np.inf)) \
             and not min(predictions.values()) <= PREDICTS_WELL:
@@ -596,6 +592,12 @@ def _predictions(pieces, members, rho, best_rho, refined, holdout, loads="genera
     above central differences on loads linear between bends, and the loop was Newmark)."""
     shortlist = [m for m in members if _class_best(m, rho, loads) <= SHORTLIST * best_rho]
     return held_back_errors(pieces, shortlist + [c for _, c, _, _ in refined], holdout)
+
+
+def leading(pieces, r):
+    """The pieces in their leading ``r`` coordinates (states, velocities, accelerations)."""
+    return [(p[0][:r],) + tuple(p[1:4]) + tuple(None if a is None else a[:r] for a in p[4:])
+            for p in pieces]
 
 
 def held_back_errors(pieces, candidates, holdout) -> dict:

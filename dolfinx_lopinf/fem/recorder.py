@@ -231,7 +231,7 @@ class SnapshotRecorder:
                 problem = f"t must be finite, got {t}"
         except (TypeError, ValueError):
             problem = f"t must be a number, got {t!r}"
-        arr, p = self._local(u, "u", t if problem is None else None)
+        arr, p = self._local(u, "u", t)
         problem = problem or p
         vel = acc = tu = None
         if velocity is not None and "velocity" in self._fields:
